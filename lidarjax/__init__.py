@@ -1,0 +1,11 @@
+"""lidarjax: probabilistic, differentiable lidar mapping and localization in JAX.
+
+Layers (each imports only from the ones before it)::
+
+    datasets (NumPy I/O) -> rays + raytrace (JAX kernels) -> maps / sensor_models / features
+    -> localization
+
+See ``README.md`` and ``../shared/DESIGN.md``.
+"""
+
+__version__ = "0.1.0"

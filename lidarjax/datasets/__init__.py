@@ -1,0 +1,22 @@
+"""Dataset layer: file readers/writers, the checksummed data registry and synthetic worlds.
+
+NumPy only; nothing here is called inside ``jit``. Readers return plain array containers.
+"""
+
+from ._carmen import CarmenLog as CarmenLog
+from ._carmen import load_carmen as load_carmen
+from ._errors import DataChecksumError as DataChecksumError
+from ._errors import DatasetFormatError as DatasetFormatError
+from ._errors import DataNotFoundError as DataNotFoundError
+from ._kitti import load_kitti_poses as load_kitti_poses
+from ._kitti import load_kitti_times as load_kitti_times
+from ._pcd import PointCloud as PointCloud
+from ._pcd import read_pcd as read_pcd
+from ._pcd import write_pcd as write_pcd
+from ._registry import REGISTRY as REGISTRY
+from ._registry import available as available
+from ._registry import data_dirs as data_dirs
+from ._registry import fetch as fetch
+from ._synthetic import OfficeWorld as OfficeWorld
+from ._synthetic import make_office as make_office
+from ._synthetic import simulate_scans as simulate_scans

@@ -15,7 +15,9 @@ def tree_allclose(a, b, *, rtol: float = 1e-9, atol: float = 1e-12) -> bool:
     lb, tb = jax.tree_util.tree_flatten(b)
     if ta != tb:
         return False
-    return all(np.allclose(np.asarray(x), np.asarray(y), rtol=rtol, atol=atol) for x, y in zip(la, lb))
+    return all(
+        np.allclose(np.asarray(x), np.asarray(y), rtol=rtol, atol=atol) for x, y in zip(la, lb)
+    )
 
 
 def finite_difference(f: Callable, x, *, eps: float = 1e-6) -> np.ndarray:

@@ -6,8 +6,8 @@ NumPy only; nothing here is called inside ``jit``. Readers return plain array co
 from ._carmen import CarmenLog as CarmenLog
 from ._carmen import load_carmen as load_carmen
 from ._errors import DataChecksumError as DataChecksumError
-from ._errors import DatasetFormatError as DatasetFormatError
 from ._errors import DataNotFoundError as DataNotFoundError
+from ._errors import DatasetFormatError as DatasetFormatError
 from ._kitti import load_kitti_poses as load_kitti_poses
 from ._kitti import load_kitti_times as load_kitti_times
 from ._pcd import PointCloud as PointCloud

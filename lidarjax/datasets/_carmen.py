@@ -1,0 +1,310 @@
+"""Reader for CARMEN laser logs (the Radish SLAM-corrected ``*-corrected.log.gz`` files).
+
+Only ``FLASER`` messages are scans::
+
+    FLASER n r_1 ... r_n x y theta odom_x odom_y odom_theta ipc_timestamp hostname logger_timestamp
+
+``x y theta`` is the SLAM-corrected laser pose (ground truth), ``odom_*`` the raw odometry.
+Two ``PARAM`` lines are honoured: ``laser_front_laser_resolution <deg>`` (angular step; without
+it the field of view is 180 degrees) and ``robot_front_laser_max <m>`` (usable range). All
+other messages (``ODOM``, ``NEFF``, other ``PARAM`` lines, ``#`` comments, ...) are ignored.
+"""
+
+from __future__ import annotations
+
+import gzip
+import math
+import os
+import zlib
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ._errors import DatasetFormatError
+
+__all__ = ["CarmenLog", "load_carmen"]
+
+_FLASER_FORMAT = (
+    "'FLASER n r_1 .. r_n x y theta odom_x odom_y odom_theta ipc_timestamp hostname "
+    "logger_timestamp' with n + 11 whitespace-separated tokens"
+)
+_RESOLUTION_PARAM = "laser_front_laser_resolution"
+_MAX_RANGE_PARAM = "robot_front_laser_max"
+_GZIP_MAGIC = b"\x1f\x8b"
+
+
+def _readonly(a: np.ndarray) -> np.ndarray:
+    a.setflags(write=False)
+    return a
+
+
+@dataclass(frozen=True, eq=False)
+class CarmenLog:
+    """Scans and poses of one CARMEN laser log.
+
+    All arrays are float64 and read-only.
+
+    Attributes:
+        ranges_m: Raw range readings in metres, shape ``[n_scans, n_beams]``, unchanged from
+            the file (no-returns keep the sensor's maximum value).
+        azimuths_rad: Beam angles relative to the robot heading in radians, shape
+            ``[n_beams]``, evenly spaced from ``-fov/2`` to ``+fov/2`` inclusive.
+        poses: SLAM-corrected laser poses ``(x [m], y [m], theta [rad])`` in the map frame,
+            shape ``[n_scans, 3]``.
+        odometry: Raw odometry poses ``(x [m], y [m], theta [rad])``, shape ``[n_scans, 3]``.
+        timestamps_s: IPC timestamps in seconds, shape ``[n_scans]``. Copied verbatim; in
+            some logs they are constant or not monotone.
+        max_range_m: The sensor's no-return value in metres (the largest reading in the log).
+        usable_range_m: Readings at or beyond this range (metres) are no-returns.
+        path: File the log was read from.
+    """
+
+    ranges_m: np.ndarray
+    azimuths_rad: np.ndarray
+    poses: np.ndarray
+    odometry: np.ndarray
+    timestamps_s: np.ndarray
+    max_range_m: float
+    usable_range_m: float
+    path: Path
+
+    @property
+    def n_scans(self) -> int:
+        """Number of scans."""
+        return int(self.ranges_m.shape[0])
+
+    @property
+    def n_beams(self) -> int:
+        """Number of beams per scan."""
+        return int(self.ranges_m.shape[1])
+
+    @property
+    def fov_rad(self) -> float:
+        """Angle between the first and the last beam in radians."""
+        return float(self.azimuths_rad[-1] - self.azimuths_rad[0])
+
+    @property
+    def no_return(self) -> np.ndarray:
+        """No-return mask ``ranges_m >= usable_range_m``, bool ``[n_scans, n_beams]``."""
+        return self.ranges_m >= self.usable_range_m
+
+    def subset(self, indices: slice | int | np.ndarray | list[int]) -> CarmenLog:
+        """A new log holding only some scans.
+
+        Args:
+            indices: Anything that indexes the scan axis of a NumPy array: a slice, an
+                integer, an integer array ``[k]`` or a boolean mask ``[n_scans]``.
+
+        Returns:
+            A log with the selected scans in the given order; ``azimuths_rad``,
+            ``max_range_m``, ``usable_range_m`` and ``path`` are shared with this log.
+        """
+        if not isinstance(indices, slice):
+            indices = np.asarray(indices)
+            if indices.ndim == 0:
+                indices = indices.reshape(1)
+        return CarmenLog(
+            ranges_m=_readonly(np.array(self.ranges_m[indices])),
+            azimuths_rad=self.azimuths_rad,
+            poses=_readonly(np.array(self.poses[indices])),
+            odometry=_readonly(np.array(self.odometry[indices])),
+            timestamps_s=_readonly(np.array(self.timestamps_s[indices])),
+            max_range_m=self.max_range_m,
+            usable_range_m=self.usable_range_m,
+            path=self.path,
+        )
+
+    def __repr__(self) -> str:
+        return (
+            f"CarmenLog(path={str(self.path)!r}, n_scans={self.n_scans}, n_beams={self.n_beams}, "
+            f"fov_deg={math.degrees(self.fov_rad):.2f}, max_range_m={self.max_range_m}, "
+            f"usable_range_m={self.usable_range_m})"
+        )
+
+
+def _read_text(path: Path) -> str:
+    raw = path.read_bytes()
+    if raw[:2] == _GZIP_MAGIC:
+        try:
+            raw = gzip.decompress(raw)
+        except (EOFError, gzip.BadGzipFile, zlib.error) as exc:
+            raise DatasetFormatError(
+                path,
+                f"corrupt or truncated gzip stream ({type(exc).__name__}: {exc})",
+                expected="a complete gzip-compressed CARMEN log",
+            ) from exc
+    # CARMEN logs are ASCII; latin-1 never fails, so odd bytes surface as format errors.
+    return raw.decode("latin-1")
+
+
+def _param_value(path: Path, tokens: list[str], lineno: int) -> float:
+    name = tokens[1]
+    try:
+        value = float(tokens[2])
+    except (IndexError, ValueError):
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise DatasetFormatError(
+            path,
+            f"invalid value for PARAM {name}",
+            line=lineno,
+            expected=f"'PARAM {name} <positive number> ...'",
+        )
+    return value
+
+
+NO_RETURN_MARGIN = 0.02
+"""Readings within this fraction of the log's largest reading are no-returns."""
+
+
+def _fail(path: Path, lineno: int, message: str) -> DatasetFormatError:
+    return DatasetFormatError(path, message, line=lineno, expected=_FLASER_FORMAT)
+
+
+def load_carmen(path: str | os.PathLike[str], *, usable_range_m: float | None = None) -> CarmenLog:
+    """Load the ``FLASER`` scans of a CARMEN log.
+
+    The file may be gzip-compressed (detected by its magic bytes) or plain text.
+
+    The field of view is ``resolution * (n_beams - 1)`` when the log has a
+    ``PARAM laser_front_laser_resolution <deg>`` line, else 180 degrees. The no-return value
+    ``max_range_m`` is the largest reading in the log. Unless given, ``usable_range_m`` is
+    ``(1 - NO_RETURN_MARGIN) * max_range_m`` (sensors report saturated readings that scatter
+    slightly below their maximum, e.g. 51.05-51.25 m), or ``PARAM robot_front_laser_max``
+    when present and smaller. If a ``PARAM`` appears several times, the last one wins.
+
+    Args:
+        path: Log file.
+        usable_range_m: Override for the usable range in metres (readings at or beyond it
+            are no-returns); must be positive.
+
+    Returns:
+        The parsed log.
+
+    Raises:
+        FileNotFoundError: ``path`` does not exist.
+        ValueError: ``usable_range_m`` is not a positive number.
+        DatasetFormatError: Truncated gzip, malformed ``FLASER`` line (wrong token count,
+            non-numeric value, beam count differing from earlier scans, NaN, infinite or
+            negative range, non-finite pose or timestamp), malformed honoured ``PARAM``, or
+            no ``FLASER`` line at all. The message carries the 1-based line number.
+    """
+    path = Path(path)
+    if usable_range_m is not None and not (math.isfinite(usable_range_m) and usable_range_m > 0):
+        raise ValueError(f"usable_range_m must be a positive number, got {usable_range_m!r}")
+    text = _read_text(path)
+
+    resolution_deg: float | None = None
+    declared_max: float | None = None
+    n_beams: int | None = None
+    first_scan_line = 0
+    rows: list[np.ndarray] = []
+    line_numbers: list[int] = []  # 1-based line of each scan
+
+    for lineno, line in enumerate(text.split("\n"), start=1):
+        if not line.startswith(("FLASER", "PARAM")):
+            continue
+        tokens = line.split()
+        kind = tokens[0]
+        if kind == "PARAM":
+            if len(tokens) >= 2 and tokens[1] == _RESOLUTION_PARAM:
+                resolution_deg = _param_value(path, tokens, lineno)
+            elif len(tokens) >= 2 and tokens[1] == _MAX_RANGE_PARAM:
+                declared_max = _param_value(path, tokens, lineno)
+            continue
+        if kind != "FLASER":
+            continue  # e.g. "FLASERX": another message type
+
+        if len(tokens) < 2:
+            raise _fail(path, lineno, "FLASER line has no beam count")
+        try:
+            n = int(tokens[1])
+        except ValueError:
+            raise _fail(path, lineno, f"beam count {tokens[1]!r} is not an integer") from None
+        if n <= 0:
+            raise _fail(path, lineno, f"beam count must be positive, got {n}")
+        if n_beams is None:
+            n_beams, first_scan_line = n, lineno
+        elif n != n_beams:
+            raise _fail(
+                path,
+                lineno,
+                f"scan has {n} beams but the scan on line {first_scan_line} has {n_beams}",
+            )
+        if len(tokens) != n + 11:
+            raise _fail(path, lineno, f"FLASER with n={n} has {len(tokens)} tokens, not {n + 11}")
+
+        # Numeric tokens: r_1..r_n, 6 pose values, ipc_timestamp, (hostname), logger_ts.
+        numeric = tokens[2 : n + 9]
+        numeric.append(tokens[-1])
+        try:
+            rows.append(np.array(numeric, dtype=np.float64))
+        except ValueError:
+            bad = next((t for t in numeric if not _is_float(t)), None)
+            raise _fail(path, lineno, f"non-numeric value {bad!r}") from None
+        line_numbers.append(lineno)
+
+    if not rows:
+        raise DatasetFormatError(
+            path, "no FLASER scans in the log (empty log)", expected=_FLASER_FORMAT
+        )
+    assert n_beams is not None
+    data = np.stack(rows)  # [n_scans, n_beams + 8]
+    _check_values(path, data, n_beams, line_numbers)
+    ranges_m = np.ascontiguousarray(data[:, :n_beams])
+    poses = np.ascontiguousarray(data[:, n_beams : n_beams + 3])
+    odometry = np.ascontiguousarray(data[:, n_beams + 3 : n_beams + 6])
+    timestamps_s = np.ascontiguousarray(data[:, n_beams + 6])
+
+    if resolution_deg is not None:
+        fov = math.radians(resolution_deg * (n_beams - 1))
+    else:
+        fov = math.pi
+    azimuths = np.linspace(-fov / 2, fov / 2, n_beams) if n_beams > 1 else np.zeros(1)
+
+    max_range = float(ranges_m.max())
+    if usable_range_m is not None:
+        usable = float(usable_range_m)
+    else:
+        # Saturated readings scatter a little below the largest one (e.g. 51.05-51.25 m),
+        # so everything within NO_RETURN_MARGIN of the maximum counts as a no-return.
+        usable = max_range * (1.0 - NO_RETURN_MARGIN)
+        if declared_max is not None:
+            usable = min(usable, declared_max)
+
+    return CarmenLog(
+        ranges_m=_readonly(ranges_m),
+        azimuths_rad=_readonly(azimuths),
+        poses=_readonly(poses),
+        odometry=_readonly(odometry),
+        timestamps_s=_readonly(timestamps_s),
+        max_range_m=max_range,
+        usable_range_m=usable,
+        path=path,
+    )
+
+
+def _check_values(path: Path, data: np.ndarray, n_beams: int, line_numbers: list[int]) -> None:
+    """Reject NaN/infinite/negative ranges and non-finite poses or timestamps."""
+    ranges = data[:, :n_beams]
+    bad_range = ~(ranges >= 0.0) | np.isinf(ranges)  # NaN compares False
+    bad_other = ~np.isfinite(data[:, n_beams:])
+    bad_rows = np.flatnonzero(bad_range.any(axis=1) | bad_other.any(axis=1))
+    if bad_rows.size == 0:
+        return
+    row = int(bad_rows[0])
+    if bad_range[row].any():
+        i = int(np.flatnonzero(bad_range[row])[0])
+        message = f"range r_{i + 1} = {ranges[row, i]!r} is negative or not finite"
+    else:
+        message = "pose, odometry or timestamp value is not finite"
+    raise _fail(path, line_numbers[row], message)
+
+
+def _is_float(token: str) -> bool:
+    try:
+        float(token)
+    except ValueError:
+        return False
+    return True

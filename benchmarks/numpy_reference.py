@@ -46,6 +46,7 @@ def _setup(origin, resolution, shape, o, d, length):
     """
     dim = len(shape)
     dtype = length.dtype
+    inf = dtype.type(np.inf)
     sq = d[0] * d[0]
     for k in range(1, dim):
         sq = sq + d[k] * d[k]
@@ -64,8 +65,8 @@ def _setup(origin, resolution, shape, o, d, length):
         ta = (lo - o[k]) / d_safe
         tb = (hi - o[k]) / d_safe
         ins = (o[k] >= lo) & (o[k] <= hi)
-        t_near.append(np.where(moving, np.minimum(ta, tb), np.where(ins, -np.inf, np.inf)))
-        t_far.append(np.where(moving, np.maximum(ta, tb), np.where(ins, np.inf, -np.inf)))
+        t_near.append(np.where(moving, np.minimum(ta, tb), np.where(ins, -inf, inf)))
+        t_far.append(np.where(moving, np.maximum(ta, tb), np.where(ins, inf, -inf)))
         inside.append(ins)
     t_enter = t_near[0]
     t_exit = t_far[0]
@@ -161,6 +162,7 @@ def accumulate_numpy(
 
     grid_origin = np.asarray(origin, dtype=dtype).reshape(dim)
     res = dtype.type(resolution)
+    inf = dtype.type(np.inf)
     n_cells = math.prod(shape)
     strides = [math.prod(shape[k + 1 :]) for k in range(dim)]
     hits = np.zeros(n_cells, np.int64)
@@ -199,24 +201,28 @@ def accumulate_numpy(
             d, t, t_end, tol, cell, active = _setup(grid_origin, res, shape, o, d, length)
             ends_inside = hit_ray & (t_end >= length - tol)
 
-            # Keep only rays that walk; per-ray constants of the step.
+            # Keep only rays that walk. The boundary parameter of cell index c along axis k
+            # is t_base_k + c * t_scale_k (inf for an axis the ray does not move along).
             keep = np.flatnonzero(active)
-            o = [x[keep] for x in o]
-            d = [x[keep] for x in d]
-            cell = [x[keep] for x in cell]
             t, t_end, tol, ends_inside = t[keep], t_end[keep], tol[keep], ends_inside[keep]
-            moving = [dk != 0 for dk in d]
-            up = [dk > 0 for dk in d]
-            d_safe = [np.where(mv, dk, dtype.type(1)) for mv, dk in zip(moving, d, strict=True)]
-            step_dir = [np.where(u, 1, -1) * mv for u, mv in zip(up, moving, strict=True)]
+            cell = [x[keep] for x in cell]
+            t_base, t_scale, step_dir = [], [], []
+            for k in range(dim):
+                dk = d[k][keep]
+                moving = dk != 0
+                up = dk > 0
+                d_safe = np.where(moving, dk, dtype.type(1))
+                offset = np.where(up, res, dtype.type(0))
+                t_base.append(
+                    np.where(moving, (grid_origin[k] + offset - o[k][keep]) / d_safe, inf)
+                )
+                t_scale.append(np.where(moving, res / d_safe, dtype.type(0)))
+                step_dir.append(np.where(up, 1, -1) * moving)
             alive = np.ones(keep.shape[0], bool)
             n_alive = keep.shape[0]
 
             while n_alive:
-                t_axis = []
-                for k in range(dim):
-                    boundary = grid_origin[k] + (cell[k] + up[k]).astype(dtype) * res
-                    t_axis.append(np.where(moving[k], (boundary - o[k]) / d_safe[k], np.inf))
+                t_axis = [t_base[k] + cell[k].astype(dtype) * t_scale[k] for k in range(dim)]
                 t_min = t_axis[0]
                 for k in range(1, dim):
                     t_min = np.minimum(t_min, t_axis[k])
@@ -249,10 +255,8 @@ def accumulate_numpy(
                 n_alive = int(np.count_nonzero(alive))
                 if 0 < n_alive <= alive.shape[0] // 2:
                     a = np.flatnonzero(alive)
-                    o = [x[a] for x in o]
-                    d_safe = [x[a] for x in d_safe]
-                    moving = [x[a] for x in moving]
-                    up = [x[a] for x in up]
+                    t_base = [x[a] for x in t_base]
+                    t_scale = [x[a] for x in t_scale]
                     step_dir = [x[a] for x in step_dir]
                     cell = [x[a] for x in cell]
                     t, t_end, tol, ends_inside = t[a], t_end[a], tol[a], ends_inside[a]

@@ -194,6 +194,8 @@ class _WalkState(eqx.Module):
 class _Ray(eqx.Module):
     origin: Float[Array, " d"]
     direction: Float[Array, " d"]
+    t_base: Float[Array, " d"]  # boundary parameter of cell index c is t_base + c * t_scale
+    t_scale: Float[Array, " d"]
     t_start: Float[Array, ""]
     t_end: Float[Array, ""]
     tol: Float[Array, ""]
@@ -242,17 +244,19 @@ def _setup(spec: GridSpec, origin, direction, length) -> tuple[_Ray, _WalkState]
 
     eps = jnp.finfo(dtype).eps
     tol = 32 * eps * (t1 + spec.resolution)
-    return _Ray(o, d, t0, t1, tol), _WalkState(cell, t0, active)
+    # Next boundary of cell c along axis k: lo_k + (c_k + up_k) * res, reached at
+    # t = (lo_k + up_k * res - o_k) / d_k + c_k * res / d_k (inf for d_k = 0).
+    t_base = jnp.where(moving, (lo + (d > 0) * spec.resolution - o) / d_safe, jnp.inf)
+    t_scale = jnp.where(moving, spec.resolution / d_safe, 0.0)
+    return _Ray(o, d, t_base, t_scale, t0, t1, tol), _WalkState(cell, t0, active)
 
 
 def _step(spec: GridSpec, ray: _Ray, state: _WalkState):
     """One cell of the walk: the segment inside ``state.cell`` and the next state."""
     d = ray.direction
-    dtype = d.dtype
     moving = d != 0
     up = d > 0
-    boundary = spec.origin.astype(dtype) + (state.cell + up).astype(dtype) * spec.resolution
-    t_axis = jnp.where(moving, (boundary - ray.origin) / jnp.where(moving, d, 1.0), jnp.inf)
+    t_axis = ray.t_base + state.cell.astype(d.dtype) * ray.t_scale
     t_min = jnp.min(t_axis)
     last = t_min >= ray.t_end - ray.tol
     t_stop = jnp.where(last, ray.t_end, t_min)
@@ -331,7 +335,7 @@ def _box_diagonal(spec: GridSpec):
     return spec.resolution * math.sqrt(sum(s * s for s in spec.shape))
 
 
-@functools.partial(jax.jit, static_argnames=("chunk_size", "sub_as_hits"))
+@functools.partial(jax.jit, static_argnames=("chunk_size",))
 def _accumulate(
     spec: GridSpec,
     origins,
@@ -341,12 +345,9 @@ def _accumulate(
     use,
     *,
     chunk_size: int,
-    sub_as_hits: bool,
 ):
-    del sub_as_hits  # folded into ray_hits / use by the caller; kept static for clarity
     dtype = origins.dtype
     n = origins.shape[0]
-    dim = spec.dim
     # Sort by expected work so each chunk's while-loop runs about as long as its rays need.
     diag = _box_diagonal(spec)
     work = jnp.sum(jnp.abs(directions), axis=-1) * jnp.minimum(lengths, diag)
@@ -367,47 +368,56 @@ def _accumulate(
     u_c = prep(use, False)
     n_cells = spec.n_cells
     strides = jnp.asarray(np.cumprod((1,) + spec.shape[:0:-1])[::-1].copy(), jnp.int32)
-    acc0 = jnp.zeros((n_cells + 1, 3), dtype)  # columns: lengths, misses, hits; last row = bin
+    # Accumulators (last entry = bin for padding): lengths R, visits V = H + M, hits H.
+    acc0 = (
+        jnp.zeros(n_cells + 1, dtype),
+        jnp.zeros(n_cells + 1, jnp.int32),
+        jnp.zeros(n_cells + 1, jnp.int32),
+    )
 
     setup = jax.vmap(functools.partial(_setup, spec))
     step = jax.vmap(functools.partial(_step, spec))
+
+    def flat_index(cell, valid):
+        return jnp.where(valid, jnp.sum(cell * strides, axis=-1), n_cells)
 
     def chunk_body(acc, xs):
         o, d, length, is_hit, use_c = xs
         ray, state = setup(o, d, length)
         state = _WalkState(state.cell, state.t, state.active & use_c)
         # A hit is counted in the ray's last cell only if it ends inside the grid.
-        ends_inside = is_hit & (ray.t_end >= jnp.where(use_c, length, 0.0) - ray.tol)
+        ends_inside = is_hit & state.active & (ray.t_end >= length - ray.tol)
 
         def cond(carry):
-            _, s = carry
-            return jnp.any(s.active)
+            return jnp.any(carry[1].active)
 
         def body(carry):
-            acc, s = carry
+            (lengths, visits, hits), s, last_cell = carry
             (cell, seg, valid, last), s = step(ray, s)
-            hit = last & ends_inside
-            flat = jnp.where(valid, jnp.sum(cell * strides, axis=-1), n_cells)
-            upd = jnp.stack(
-                [seg, (valid & ~hit).astype(dtype), (valid & hit).astype(dtype)], axis=-1
-            )
-            acc = acc.at[flat].add(upd, mode="promise_in_bounds")
-            return acc, s
+            # Two 1-D scatters are ~1.5x faster on CPU than one [n 3] scatter.
+            flat = flat_index(cell, valid)
+            lengths = lengths.at[flat].add(seg, mode="promise_in_bounds")
+            visits = visits.at[flat].add(1, mode="promise_in_bounds")
+            last_cell = jnp.where((valid & last)[:, None], cell, last_cell)
+            return (lengths, visits, hits), s, last_cell
 
-        acc, _ = jax.lax.while_loop(cond, body, (acc, state))
-        return acc, None
+        (lengths, visits, hits), _, last_cell = jax.lax.while_loop(
+            cond, body, (acc, state, state.cell)
+        )
+        hits = hits.at[flat_index(last_cell, ends_inside)].add(1, mode="promise_in_bounds")
+        return (lengths, visits, hits), None
 
-    acc, _ = jax.lax.scan(chunk_body, acc0, (o_c, d_c, l_c, h_c, u_c))
-    acc = acc[:n_cells].reshape(*spec.shape, 3)
-    del dim
-    return acc
+    (lengths, visits, hits), _ = jax.lax.scan(chunk_body, acc0, (o_c, d_c, l_c, h_c, u_c))
+    shape = spec.shape
+    hits = hits[:n_cells].reshape(shape)
+    return lengths[:n_cells].reshape(shape), visits[:n_cells].reshape(shape) - hits, hits
 
 
 def accumulate(
     spec: GridSpec,
     rays: RayBatch,
     *,
-    chunk_size: int = 16384,
+    chunk_size: int = 2048,
     sub_rays: Literal["ignore", "hit"] = "ignore",
 ) -> GridStats:
     """Per-cell hit counts H, miss counts M and travelled lengths R of a ray batch.
@@ -452,7 +462,7 @@ def accumulate(
         use = use | (kind == SUB)
     lengths = jnp.where(kind == SUP, flat.r_max, flat.ranges).astype(dtype)
     chunk = min(chunk_size, flat.ranges.shape[0])
-    acc = _accumulate(
+    lengths, misses, hits = _accumulate(
         spec,
         flat.origins.astype(dtype),
         flat.directions.astype(dtype),
@@ -460,14 +470,8 @@ def accumulate(
         is_hit,
         use,
         chunk_size=chunk,
-        sub_as_hits=sub_rays == "hit",
     )
-    return GridStats(
-        spec=spec,
-        hits=acc[..., 2].astype(jnp.int32),
-        misses=acc[..., 1].astype(jnp.int32),
-        lengths=acc[..., 0],
-    )
+    return GridStats(spec=spec, hits=hits, misses=misses, lengths=lengths)
 
 
 __all__ = [

@@ -31,10 +31,19 @@ class OfficeWorld:
     seed: int
 
     def trajectory(self, n_poses: int, *, jitter_m: float = 0.0, seed: int = 0) -> np.ndarray:
-        """``[n_poses 3]`` poses (x, y, theta) evenly spaced along the waypoint loop,
-        heading along the path, optionally jittered laterally by up to ``jitter_m``."""
-        if n_poses <= 0:
-            raise ValueError(f"n_poses must be positive, got {n_poses}")
+        """Poses evenly spaced along the closed waypoint loop.
+
+        Args:
+            n_poses: number of poses.
+            jitter_m: amplitude (m) of a smooth, seeded lateral weave added to the path
+                (keep it below the corridor half-width).
+            seed: phase of the weave.
+
+        Returns:
+            ``[n_poses 3]`` poses (x, y, theta), heading along the (woven) path.
+        """
+        if n_poses <= 1:
+            raise ValueError(f"n_poses must be at least 2, got {n_poses}")
         loop = np.vstack([self.waypoints, self.waypoints[:1]])
         seg = np.diff(loop, axis=0)
         seg_len = np.linalg.norm(seg, axis=1)
@@ -43,13 +52,16 @@ class OfficeWorld:
         i = np.clip(np.searchsorted(cum, s, side="right") - 1, 0, len(seg) - 1)
         frac = (s - cum[i]) / seg_len[i]
         xy = loop[i] + frac[:, None] * seg[i]
-        theta = np.arctan2(seg[i, 1], seg[i, 0])
         if jitter_m > 0:
-            rng = np.random.default_rng(seed)
-            normal = np.stack([-np.sin(theta), np.cos(theta)], axis=1)
-            xy = xy + normal * rng.uniform(-jitter_m, jitter_m, (n_poses, 1))
-            theta = theta + rng.normal(0.0, 0.05, n_poses)
-        return np.column_stack([xy, np.arctan2(np.sin(theta), np.cos(theta))])
+            phase = np.random.default_rng(seed).uniform(0, 2 * np.pi, 2)
+            u = seg[i] / seg_len[i, None]
+            normal = np.stack([-u[:, 1], u[:, 0]], axis=1)
+            # smooth weave that vanishes at the waypoints (so turns stay inside doors)
+            amp = jitter_m * np.sin(np.pi * frac) * np.sin(2 * np.pi * s / 3.7 + phase[0])
+            xy = xy + normal * amp[:, None]
+        step = np.roll(xy, -1, axis=0) - np.roll(xy, 1, axis=0)
+        theta = np.arctan2(step[:, 1], step[:, 0])
+        return np.column_stack([xy, theta])
 
 
 def _box(

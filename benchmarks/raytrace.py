@@ -108,11 +108,14 @@ def _compare(stats, ref, resolution: float, *, strict: bool) -> dict:
     Otherwise XLA is free to contract ``a * b + c`` into fused multiply-adds and to rewrite
     ``x / sqrt(y)``, which NumPy does not do. A last-bit difference in a boundary parameter
     can then decide a near-tie differently (a corner crossed in one step in one
-    implementation, in two steps with a micrometre sliver cell in the other). So a tiny
-    fraction of count mismatches is tolerated (``1e-4`` of all cell visits) and the lengths
-    must agree per cell to ``rtol`` plus 1 % of a cell edge and to ``rtol / 10`` in total
-    (``rtol`` = ``1e-3`` in float32, ``1e-9`` in float64). A real bug shows up as far
-    larger disagreement.
+    implementation, in two steps with a sliver cell in the other), so a tiny fraction of
+    count mismatches is tolerated (``1e-4`` of all cell visits). For near-axis-parallel rays
+    the crossing parameters along the minor axis are ill-conditioned (a last-bit change of
+    a coordinate ``x`` moves them by ``eps * |x| / |d_k|``), so single cells can differ by
+    a few tenths of a millimetre in float32. The lengths must therefore agree to
+    ``rtol / 10`` in total (L1) and per cell to ``rtol`` plus 10 % of a cell edge
+    (``rtol`` = ``1e-3`` in float32, ``1e-9`` in float64). A real bug shows up as far larger
+    disagreement.
     """
     hits, misses, lengths = ref
     h = np.asarray(stats.hits, np.int64)
@@ -136,7 +139,7 @@ def _compare(stats, ref, resolution: float, *, strict: bool) -> dict:
     else:
         rtol = 1e-9 if stats.lengths.dtype == np.float64 else 1e-3
         counts_ok = mismatch <= 1e-4 * visits
-        lengths_ok = bool(np.all(err <= rtol * np.abs(lengths) + 1e-2 * resolution)) and (
+        lengths_ok = bool(np.all(err <= rtol * np.abs(lengths) + 0.1 * resolution)) and (
             out["total_rel_length_error"] <= rtol / 10
         )
     if not (counts_ok and lengths_ok):

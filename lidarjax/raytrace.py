@@ -325,6 +325,42 @@ def traverse(
     )
 
 
+def max_cells_for(spec: GridSpec, length_m: float | None = None) -> int:
+    """A ``max_cells`` budget for :func:`traverse` that no ray of length ``length_m`` (m)
+    can exceed in this grid (default: rays crossing the whole grid)."""
+    per_axis = [n + 1 for n in spec.shape]
+    if length_m is not None and np.isfinite(length_m):
+        res = float(spec.resolution)
+        per_axis = [min(p, int(np.ceil(float(length_m) / res)) + 2) for p in per_axis]
+    return int(sum(per_axis))
+
+
+def traverse_rays(spec: GridSpec, rays: RayBatch, max_cells: int | None = None) -> Traversal:
+    """:func:`traverse` for every ray of a batch, each traced to its
+    :meth:`~lidarjax.rays.RayBatch.trace_lengths` (range, or ``r_max`` for SUP rays).
+
+    Args:
+        spec: the grid; its dimension must match the rays'.
+        rays: any batch shape ``[*batch]``.
+        max_cells: static per-ray budget; default :func:`max_cells_for` the longest
+            possible ray, which never truncates.
+
+    Returns:
+        A :class:`Traversal` whose fields have leading axes ``[*batch]``.
+    """
+    if not isinstance(rays, RayBatch):
+        raise ValueError(f"rays must be a RayBatch, got {type(rays).__name__}")
+    if rays.dim != spec.dim:
+        raise ValueError(f"rays are {rays.dim}-D but spec is a {spec.dim}-D grid")
+    if max_cells is None:
+        max_cells = max_cells_for(spec)
+    flat = rays.flatten()
+    tr = jax.vmap(lambda o, d, length: traverse(spec, o, d, length, max_cells))(
+        flat.origins, flat.directions, flat.trace_lengths()
+    )
+    return jax.tree.map(lambda x: x.reshape(*rays.shape, *x.shape[1:]), tr)
+
+
 def expected_cell_count(spec: GridSpec, rays: RayBatch) -> Float[Array, "*batch"]:
     """Upper bound on the number of cells each ray visits (before clipping to the grid)."""
     lengths = jnp.minimum(rays.trace_lengths(), _box_diagonal(spec))
@@ -479,6 +515,8 @@ __all__ = [
     "GridStats",
     "Traversal",
     "traverse",
+    "traverse_rays",
+    "max_cells_for",
     "accumulate",
     "expected_cell_count",
     "SUB",

@@ -13,7 +13,7 @@ import pytest
 from hypothesis import given
 
 from lidarjax.rays import HIT, SUB, SUP, RayBatch, from_scan
-from lidarjax.raytrace import GridSpec, accumulate, traverse
+from lidarjax.raytrace import GridSpec, accumulate, traverse, traverse_rays
 
 traverse_jit = jax.jit(traverse, static_argnums=4)
 
@@ -430,3 +430,23 @@ def test_gridspec_validation_and_helpers():
     np.testing.assert_array_equal(
         np.asarray(spec.cell_of(centers)), np.stack(np.indices(spec.shape), -1)
     )
+
+
+def test_traverse_rays_matches_single_ray_traverse():
+    spec = GridSpec([0.0, 0.0], 0.1, (30, 20))
+    T = jaxlie.SE2.from_xy_theta(
+        jnp.array([1.0, 2.0]), jnp.array([1.0, 0.5]), jnp.array([0.3, 2.0])
+    )
+    az = jnp.linspace(-1.5, 1.5, 5)
+    ranges = jnp.array([[0.5, 1.0, 9.0, 0.0, 2.0], [0.2, 3.0, 0.7, 1.1, 9.5]])
+    rays = from_scan(T, az, ranges, 0.1, 4.0)
+    tr = traverse_rays(spec, rays)
+    assert tr.cells.shape[:2] == (2, 5) and bool(jnp.all(tr.complete))
+    for s in range(2):
+        for b in range(5):
+            length = float(rays.trace_lengths()[s, b])
+            one = traverse(
+                spec, rays.origins[s, b], rays.directions[s, b], length, tr.cells.shape[2]
+            )
+            np.testing.assert_array_equal(np.asarray(one.valid), np.asarray(tr.valid[s, b]))
+            np.testing.assert_allclose(np.asarray(one.lengths), np.asarray(tr.lengths[s, b]))

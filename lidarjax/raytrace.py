@@ -270,6 +270,7 @@ def _step(spec: GridSpec, ray: _Ray, state: _WalkState):
     return (state.cell, seg, valid, valid & (last | ~inside)), new
 
 
+@functools.partial(jax.jit, static_argnames=("max_cells",))
 def traverse(
     spec: GridSpec,
     origin: Float[ArrayLike, " d"],
@@ -354,6 +355,11 @@ def traverse_rays(spec: GridSpec, rays: RayBatch, max_cells: int | None = None) 
         raise ValueError(f"rays are {rays.dim}-D but spec is a {spec.dim}-D grid")
     if max_cells is None:
         max_cells = max_cells_for(spec)
+    return _traverse_rays(spec, rays, max_cells=max_cells)
+
+
+@functools.partial(jax.jit, static_argnames=("max_cells",))
+def _traverse_rays(spec: GridSpec, rays: RayBatch, max_cells: int) -> Traversal:
     flat = rays.flatten()
     tr = jax.vmap(lambda o, d, length: traverse(spec, o, d, length, max_cells))(
         flat.origins, flat.directions, flat.trace_lengths()

@@ -377,6 +377,9 @@ def _box_diagonal(spec: GridSpec):
     return spec.resolution * math.sqrt(sum(s * s for s in spec.shape))
 
 
+_MAX_RAYS_PER_CALL = 1 << 24
+
+
 @functools.partial(jax.jit, static_argnames=("chunk_size",))
 def _accumulate(
     spec: GridSpec,
@@ -411,11 +414,11 @@ def _accumulate(
     n_cells = spec.n_cells
     strides = jnp.asarray(np.cumprod((1,) + spec.shape[:0:-1])[::-1].copy(), jnp.int32)
     # Accumulators (last entry = bin for padding): lengths R, visits V = H + M, hits H.
-    acc0 = (
-        jnp.zeros(n_cells + 1, dtype),
-        jnp.zeros(n_cells + 1, jnp.int32),
-        jnp.zeros(n_cells + 1, jnp.int32),
-    )
+    # Lengths R (real part) and visits V = H + M (imaginary part) share one complex
+    # accumulator: one scatter per step instead of two (~1.4x faster on CPU). V is exact
+    # while it stays below 2**24 (float32) -- the caller bounds the rays per call.
+    cdtype = jnp.complex64 if dtype == jnp.float32 else jnp.complex128
+    acc0 = (jnp.zeros(n_cells + 1, cdtype), jnp.zeros(n_cells + 1, jnp.int32))
 
     setup = jax.vmap(functools.partial(_setup, spec))
     step = jax.vmap(functools.partial(_step, spec))
@@ -434,25 +437,22 @@ def _accumulate(
             return jnp.any(carry[1].active)
 
         def body(carry):
-            (lengths, visits, hits), s, last_cell = carry
+            (rv, hits), s, last_cell = carry
             (cell, seg, valid, last), s = step(ray, s)
-            # Two 1-D scatters are ~1.5x faster on CPU than one [n 3] scatter.
-            flat = flat_index(cell, valid)
-            lengths = lengths.at[flat].add(seg, mode="promise_in_bounds")
-            visits = visits.at[flat].add(1, mode="promise_in_bounds")
+            upd = jax.lax.complex(seg, valid.astype(dtype))
+            rv = rv.at[flat_index(cell, valid)].add(upd, mode="promise_in_bounds")
             last_cell = jnp.where((valid & last)[:, None], cell, last_cell)
-            return (lengths, visits, hits), s, last_cell
+            return (rv, hits), s, last_cell
 
-        (lengths, visits, hits), _, last_cell = jax.lax.while_loop(
-            cond, body, (acc, state, state.cell)
-        )
+        (rv, hits), _, last_cell = jax.lax.while_loop(cond, body, (acc, state, state.cell))
         hits = hits.at[flat_index(last_cell, ends_inside)].add(1, mode="promise_in_bounds")
-        return (lengths, visits, hits), None
+        return (rv, hits), None
 
-    (lengths, visits, hits), _ = jax.lax.scan(chunk_body, acc0, (o_c, d_c, l_c, h_c, u_c))
+    (rv, hits), _ = jax.lax.scan(chunk_body, acc0, (o_c, d_c, l_c, h_c, u_c))
     shape = spec.shape
     hits = hits[:n_cells].reshape(shape)
-    return lengths[:n_cells].reshape(shape), visits[:n_cells].reshape(shape) - hits, hits
+    visits = jnp.round(rv.imag[:n_cells]).astype(jnp.int32).reshape(shape)
+    return rv.real[:n_cells].reshape(shape), visits - hits, hits
 
 
 def accumulate(
@@ -502,17 +502,27 @@ def accumulate(
     if sub_rays == "hit":
         is_hit = is_hit | (kind == SUB)
         use = use | (kind == SUB)
-    lengths = jnp.where(kind == SUP, flat.r_max, flat.ranges).astype(dtype)
-    chunk = min(chunk_size, flat.ranges.shape[0])
-    lengths, misses, hits = _accumulate(
-        spec,
-        flat.origins.astype(dtype),
-        flat.directions.astype(dtype),
-        lengths,
-        is_hit,
-        use,
-        chunk_size=chunk,
-    )
+    trace = jnp.where(kind == SUP, flat.r_max, flat.ranges).astype(dtype)
+    n = flat.ranges.shape[0]
+    chunk = min(chunk_size, n)
+    # Visit counts are summed as floats inside one call; at most _MAX_RAYS_PER_CALL rays
+    # per call keep them exact (each ray visits a cell at most once).
+    lengths = misses = hits = None
+    for lo in range(0, n, _MAX_RAYS_PER_CALL):
+        sl = slice(lo, min(n, lo + _MAX_RAYS_PER_CALL))
+        part = _accumulate(
+            spec,
+            flat.origins[sl].astype(dtype),
+            flat.directions[sl].astype(dtype),
+            trace[sl],
+            is_hit[sl],
+            use[sl],
+            chunk_size=chunk,
+        )
+        if lengths is None:
+            lengths, misses, hits = part
+        else:
+            lengths, misses, hits = lengths + part[0], misses + part[1], hits + part[2]
     return GridStats(spec=spec, hits=hits, misses=misses, lengths=lengths)
 
 

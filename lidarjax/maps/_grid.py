@@ -1,0 +1,287 @@
+"""Grid maps of the three forward sensor models of chapter 7.
+
+- :class:`DecayRateMap`: one decay rate ``lambda_i`` (1/m) per cell, the maximum-likelihood
+  estimate ``H_i / R_i`` of Eq. (7.10).
+- :class:`ReflectionMap`: one reflection probability ``mu_i = H_i / (H_i + M_i)`` per cell,
+  Eq. (7.22) (the "hit-counting" model).
+- :class:`EndpointMap`: the likelihood field of the endpoint model (Thrun et al.), i.e. the
+  Euclidean distance from every cell centre to the nearest occupied cell centre, plus the
+  mixture weights of the heuristic.
+
+All three are built from a :class:`~lidarjax.raytrace.GridStats` and consumed by the
+``log_likelihood(map, rays)`` functions of :mod:`lidarjax.sensor_models`.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Bool, Float
+
+from ..raytrace import GridSpec, GridStats
+
+
+def _check_stats(stats) -> None:
+    if not isinstance(stats, GridStats):
+        raise ValueError(f"stats must be a GridStats, got {type(stats).__name__}")
+
+
+def _check_scalar(value, name: str, *, lo: float = 0.0, hi: float | None = None) -> None:
+    if isinstance(value, jax.core.Tracer):
+        return
+    if np.ndim(value) != 0:
+        raise ValueError(f"{name} must be a scalar, got shape {np.shape(value)}")
+    v = float(value)
+    if not np.isfinite(v) or v < lo or (hi is not None and v > hi):
+        bound = f"[{lo}, {hi}]" if hi is not None else f">= {lo}"
+        raise ValueError(f"{name} must be finite and {bound}, got {v}")
+
+
+class DecayRateMap(eqx.Module):
+    """Decay-rate map (dissertation Sec. 7.3): a piecewise-constant decay rate per cell.
+
+    Attributes:
+        spec: the grid.
+        rates: ``[*shape]`` decay rate ``lambda_i`` (1/m) per cell, ``>= 0``.
+        outside_rate: ``[]`` decay rate (1/m) assumed for every point outside the grid.
+    """
+
+    spec: GridSpec
+    rates: Float[Array, "*shape"]
+    outside_rate: Float[Array, ""]
+
+    def __check_init__(self):
+        if not isinstance(self.spec, GridSpec):
+            raise ValueError(f"spec must be a GridSpec, got {type(self.spec).__name__}")
+        if tuple(jnp.shape(self.rates)) != self.spec.shape:
+            raise ValueError(
+                f"rates must have the grid shape {self.spec.shape}, got {jnp.shape(self.rates)}"
+            )
+        if jnp.shape(self.outside_rate) != ():
+            raise ValueError(f"outside_rate must be a scalar, got {jnp.shape(self.outside_rate)}")
+
+
+class ReflectionMap(eqx.Module):
+    """Reflection (hit-counting) map: a reflection probability per cell, Eq. (7.22).
+
+    Attributes:
+        spec: the grid.
+        probs: ``[*shape]`` probability ``mu_i`` in ``[0, 1]`` that a ray entering the cell
+            is reflected inside it.
+        unknown_prob: ``[]`` reflection probability used outside the grid (see
+            :func:`lidarjax.sensor_models.reflection_log_likelihood` for how space outside
+            the grid is treated).
+    """
+
+    spec: GridSpec
+    probs: Float[Array, "*shape"]
+    unknown_prob: Float[Array, ""]
+
+    def __check_init__(self):
+        if not isinstance(self.spec, GridSpec):
+            raise ValueError(f"spec must be a GridSpec, got {type(self.spec).__name__}")
+        if tuple(jnp.shape(self.probs)) != self.spec.shape:
+            raise ValueError(
+                f"probs must have the grid shape {self.spec.shape}, got {jnp.shape(self.probs)}"
+            )
+        if jnp.shape(self.unknown_prob) != ():
+            raise ValueError(f"unknown_prob must be a scalar, got {jnp.shape(self.unknown_prob)}")
+
+
+class EndpointMap(eqx.Module):
+    """Likelihood field of the endpoint model (dissertation Sec. 7.6.2, after Eq. 7.32).
+
+    Attributes:
+        spec: the grid.
+        distances: ``[*shape]`` Euclidean distance (m) from each cell centre to the nearest
+            occupied cell centre (``inf`` if no cell is occupied).
+        occupied: ``[*shape]`` bool, the cells treated as obstacles.
+        sigma_m: ``[]`` standard deviation (m) of the Gaussian hit term.
+        z_hit: ``[]`` weight of the Gaussian term.
+        z_rand: ``[]`` weight of the uniform term ``z_rand / r_max``.
+        p_out: ``[]`` absolute probability ``P`` of an out-of-range measurement (SUB or SUP).
+    """
+
+    spec: GridSpec
+    distances: Float[Array, "*shape"]
+    occupied: Bool[Array, "*shape"]
+    sigma_m: Float[Array, ""]
+    z_hit: Float[Array, ""]
+    z_rand: Float[Array, ""]
+    p_out: Float[Array, ""]
+
+    def __check_init__(self):
+        if not isinstance(self.spec, GridSpec):
+            raise ValueError(f"spec must be a GridSpec, got {type(self.spec).__name__}")
+        for name in ("distances", "occupied"):
+            if tuple(jnp.shape(getattr(self, name))) != self.spec.shape:
+                raise ValueError(
+                    f"{name} must have the grid shape {self.spec.shape}, got "
+                    f"{jnp.shape(getattr(self, name))}"
+                )
+
+    def hit_field(self) -> Float[Array, "*shape"]:
+        """``[*shape]`` Gaussian term ``N(dist_i; 0, sigma)`` (1/m) per cell."""
+        s = self.sigma_m
+        return jnp.exp(-0.5 * (self.distances / s) ** 2) / (jnp.sqrt(2 * jnp.pi) * s)
+
+
+def decay_rate_map(stats: GridStats, *, unknown_rate: float | None = None) -> DecayRateMap:
+    """Maximum-likelihood decay-rate map ``lambda_i = H_i / R_i``, Eq. (7.10).
+
+    Args:
+        stats: per-cell hits ``H`` and travelled lengths ``R`` (m).
+        unknown_rate: rate (1/m) for never-traversed cells (``R_i = 0``) and for all space
+            outside the grid. Default: the global ML rate ``sum(H) / sum(R)`` (0 if no ray
+            traversed the grid), i.e. the rate of a map with a single cell.
+
+    Returns:
+        A :class:`DecayRateMap`; NaN-free (and with NaN-free gradients w.r.t. the stats).
+    """
+    _check_stats(stats)
+    h = jnp.asarray(stats.hits, dtype=stats.lengths.dtype)
+    r = stats.lengths
+    if unknown_rate is None:
+        total_r = jnp.sum(r)
+        pos = total_r > 0
+        unknown = jnp.where(pos, jnp.sum(h) / jnp.where(pos, total_r, 1.0), 0.0)
+    else:
+        _check_scalar(unknown_rate, "unknown_rate")
+        unknown = jnp.asarray(unknown_rate, r.dtype)
+    seen = r > 0
+    rates = jnp.where(seen, h / jnp.where(seen, r, 1.0), unknown)
+    return DecayRateMap(spec=stats.spec, rates=rates, outside_rate=unknown)
+
+
+def reflection_map(stats: GridStats, *, unknown_prob: float | None = None) -> ReflectionMap:
+    """Reflection map ``mu_i = H_i / (H_i + M_i)``, Eq. (7.22).
+
+    Args:
+        stats: per-cell hits ``H`` and misses ``M``.
+        unknown_prob: reflection probability of never-visited cells (``H_i + M_i = 0``) and
+            of space outside the grid. Default: the global ratio ``sum(H) / sum(H + M)``
+            (0 if nothing was visited).
+
+    Returns:
+        A :class:`ReflectionMap`.
+    """
+    _check_stats(stats)
+    dtype = stats.lengths.dtype
+    h = jnp.asarray(stats.hits, dtype)
+    n = h + jnp.asarray(stats.misses, dtype)
+    if unknown_prob is None:
+        total = jnp.sum(n)
+        pos = total > 0
+        unknown = jnp.where(pos, jnp.sum(h) / jnp.where(pos, total, 1.0), 0.0)
+    else:
+        _check_scalar(unknown_prob, "unknown_prob", hi=1.0)
+        unknown = jnp.asarray(unknown_prob, dtype)
+    seen = n > 0
+    probs = jnp.where(seen, h / jnp.where(seen, n, 1.0), unknown)
+    return ReflectionMap(spec=stats.spec, probs=probs, unknown_prob=unknown)
+
+
+@jax.jit
+def _squared_edt(blocked: Bool[Array, "*shape"]) -> Float[Array, "*shape"]:
+    """Exact squared Euclidean distance transform in cell units (separable, one 1-D pass
+    ``g(i) = min_j f(j) + (i - j)^2`` per axis; exact because squared distances separate)."""
+    f = jnp.where(blocked, 0.0, jnp.inf)
+    for axis in range(f.ndim):
+        x = jnp.moveaxis(f, axis, -1)
+        n = x.shape[-1]
+        j = jnp.arange(n, dtype=x.dtype)
+
+        def one(i, x=x, j=j):
+            return jnp.min(x + (i - j) ** 2, axis=-1)
+
+        g = jax.lax.map(one, j)  # [n *rest]
+        f = jnp.moveaxis(jnp.moveaxis(g, 0, -1), -1, axis)
+    return f
+
+
+def distance_transform(
+    occupied: Bool[ArrayLike, "*shape"], resolution: float
+) -> Float[Array, "*shape"]:
+    """Exact Euclidean distance (m) from each cell centre to the nearest occupied cell
+    centre of a 2-D or 3-D grid (``inf`` everywhere if nothing is occupied).
+
+    Cost ``O(n_cells * max(shape))``, memory ``O(n_cells)`` (one pass per axis).
+
+    Args:
+        occupied: ``[*shape]`` bool mask.
+        resolution: cell edge length (m).
+    """
+    occ = jnp.asarray(occupied)
+    if occ.ndim not in (2, 3) or occ.dtype != jnp.bool_:
+        raise ValueError(f"occupied must be a 2-D or 3-D bool array, got {occ.dtype}{occ.shape}")
+    return jnp.sqrt(_squared_edt(occ)) * jnp.asarray(resolution, jnp.result_type(float))
+
+
+def endpoint_map(
+    stats: GridStats,
+    *,
+    sigma_m: float,
+    occupied_threshold: float = 0.0,
+    z_hit: float = 0.9,
+    z_rand: float = 0.1,
+    p_out: float = 0.05,
+) -> EndpointMap:
+    """Likelihood-field map of the endpoint model.
+
+    A cell is occupied when its reflection probability ``mu_i = H_i / (H_i + M_i)``
+    (Eq. 7.22) exceeds ``occupied_threshold`` (default 0: every cell with a hit). The
+    likelihood field is ``z_hit * N(dist; 0, sigma_m) + z_rand / r_max`` with ``dist`` the
+    exact Euclidean distance from the cell centre to the nearest occupied cell centre; the
+    sensor model normalises it per ray (see
+    :func:`lidarjax.sensor_models.endpoint_log_likelihood`).
+
+    Args:
+        stats: per-cell hits and misses.
+        sigma_m: standard deviation (m) of the Gaussian term, ``> 0``.
+        occupied_threshold: threshold on ``mu_i`` in ``[0, 1)``.
+        z_hit: weight of the Gaussian term, ``>= 0``.
+        z_rand: weight of the uniform term, ``>= 0``.
+        p_out: probability ``P`` of an out-of-range (SUB/SUP) measurement, in ``[0, 1)``.
+
+    Returns:
+        An :class:`EndpointMap`.
+    """
+    _check_stats(stats)
+    _check_scalar(sigma_m, "sigma_m")
+    if not isinstance(sigma_m, jax.core.Tracer) and float(sigma_m) <= 0:
+        raise ValueError(f"sigma_m must be > 0, got {sigma_m}")
+    _check_scalar(occupied_threshold, "occupied_threshold", hi=1.0)
+    _check_scalar(z_hit, "z_hit")
+    _check_scalar(z_rand, "z_rand")
+    _check_scalar(p_out, "p_out", hi=1.0)
+    dtype = stats.lengths.dtype
+    h = jnp.asarray(stats.hits, dtype)
+    n = h + jnp.asarray(stats.misses, dtype)
+    mu = jnp.where(n > 0, h / jnp.where(n > 0, n, 1.0), 0.0)
+    occupied = (h > 0) & (mu > occupied_threshold)
+    dist = distance_transform(occupied, stats.spec.resolution).astype(dtype)
+    as_arr = functools.partial(jnp.asarray, dtype=dtype)
+    return EndpointMap(
+        spec=stats.spec,
+        distances=dist,
+        occupied=occupied,
+        sigma_m=as_arr(sigma_m),
+        z_hit=as_arr(z_hit),
+        z_rand=as_arr(z_rand),
+        p_out=as_arr(p_out),
+    )
+
+
+__all__ = [
+    "DecayRateMap",
+    "ReflectionMap",
+    "EndpointMap",
+    "decay_rate_map",
+    "reflection_map",
+    "endpoint_map",
+    "distance_transform",
+]

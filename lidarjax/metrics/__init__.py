@@ -1,0 +1,20 @@
+"""Evaluation measures from the dissertation: map RMSE in p_ref (section 9.5.1) and the
+pose-likelihood divergences of Eqs. (7.28), (7.29), (8.24)/(8.25)."""
+
+from ._maps import dirac_divergence as dirac_divergence
+from ._maps import gaussian_log_density as gaussian_log_density
+from ._maps import inverse_kl as inverse_kl
+from ._maps import kl_to_gaussian as kl_to_gaussian
+from ._maps import map_rmse as map_rmse
+from ._maps import p_ref as p_ref
+from ._maps import p_ref_rmse as p_ref_rmse
+
+__all__ = [
+    "p_ref",
+    "map_rmse",
+    "p_ref_rmse",
+    "dirac_divergence",
+    "inverse_kl",
+    "kl_to_gaussian",
+    "gaussian_log_density",
+]

@@ -1,0 +1,27 @@
+"""Forward sensor models on grid maps (dissertation ch. 7): pure, jit-compiled
+``log_likelihood(map, rays) -> [*batch]`` functions and pose-batched scan evaluation.
+
+- :func:`decay_rate_log_likelihood`: Eqs. (7.13), (7.16).
+- :func:`reflection_log_likelihood`: Eqs. (7.23), (7.32).
+- :func:`endpoint_log_likelihood`: likelihood field, normalised per ray (below Eq. 7.32).
+- :func:`posterior_log_likelihood`: full map posteriors, Eq. (8.22) and its decay-rate
+  analogue (implemented in :mod:`lidarjax.maps`).
+- :func:`log_likelihood_at_poses` / :func:`ray_log_likelihoods_at_poses`: one 2-D scan at
+  many poses.
+"""
+
+from ..maps import posterior_log_likelihood as posterior_log_likelihood
+from ._common import log_likelihood_at_poses as log_likelihood_at_poses
+from ._common import ray_log_likelihoods_at_poses as ray_log_likelihoods_at_poses
+from ._decay_rate import log_likelihood as decay_rate_log_likelihood
+from ._endpoint import log_likelihood as endpoint_log_likelihood
+from ._reflection import log_likelihood as reflection_log_likelihood
+
+__all__ = [
+    "decay_rate_log_likelihood",
+    "reflection_log_likelihood",
+    "endpoint_log_likelihood",
+    "posterior_log_likelihood",
+    "log_likelihood_at_poses",
+    "ray_log_likelihoods_at_poses",
+]

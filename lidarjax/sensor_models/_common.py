@@ -1,0 +1,262 @@
+"""Shared pieces of the grid sensor models: NaN-safe math, input checks, the per-ray
+traversal summary and the pose-batched evaluation of 2-D scans."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jaxlie
+import numpy as np
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
+
+from ..rays import HIT, SUB, RayBatch, from_scan
+from ..raytrace import GridSpec, Traversal, max_cells_for, traverse
+
+_LOG2 = math.log(2.0)
+
+
+def safe_log(x: Array) -> Array:
+    """``log(x)`` with ``log(0) = -inf`` and a finite (zero) gradient at ``x <= 0``."""
+    pos = x > 0
+    return jnp.where(pos, jnp.log(jnp.where(pos, x, 1.0)), -jnp.inf)
+
+
+def log1mexp(x: Array) -> Array:
+    """``log(1 - exp(-x))`` for ``x >= 0``, stable for small and large ``x``; ``-inf`` at
+    ``x <= 0`` with a zero (not NaN) gradient there."""
+    pos = x > 0
+    xs = jnp.where(pos, x, 1.0)
+    small = xs < _LOG2
+    a = jnp.log(-jnp.expm1(-jnp.where(small, xs, _LOG2)))
+    b = jnp.log1p(-jnp.exp(-jnp.where(small, _LOG2, xs)))
+    return jnp.where(pos, jnp.where(small, a, b), -jnp.inf)
+
+
+def mul0(a: Array, b: Array) -> Array:
+    """``a * b`` with ``0 * inf := 0``; NaN-free gradients (zero where the product is 0 or
+    infinite)."""
+    zero = (a == 0) | (b == 0)
+    infinite = ~zero & ~(jnp.isfinite(a) & jnp.isfinite(b))
+    safe = zero | infinite
+    prod = jnp.where(safe, 1.0, a) * jnp.where(safe, 1.0, b)
+    return jnp.where(zero, 0.0, jnp.where(infinite, jnp.sign(a) * jnp.sign(b) * jnp.inf, prod))
+
+
+def check_model_inputs(model, model_type: type, rays, name: str = "map") -> None:
+    """Trace-time checks: map type, ray type and matching dimension (``ValueError``)."""
+    if not isinstance(model, model_type):
+        raise ValueError(f"{name} must be a {model_type.__name__}, got {type(model).__name__}")
+    if not isinstance(rays, RayBatch):
+        raise ValueError(f"rays must be a RayBatch, got {type(rays).__name__}")
+    if rays.dim != model.spec.dim:
+        raise ValueError(
+            f"rays are {rays.dim}-D but {name} is a {model.spec.dim}-D grid "
+            f"(rays.origins has shape {rays.origins.shape})"
+        )
+
+
+def _concrete(x) -> bool:
+    return not isinstance(x, jax.core.Tracer)
+
+
+def default_max_cells(spec: GridSpec, length_m, max_cells: int | None) -> int:
+    """A ``traverse`` budget: ``max_cells`` if given, else :func:`max_cells_for` the
+    longest trace ``length_m`` (m) when it is concrete, else for the whole grid."""
+    if max_cells is not None:
+        if not isinstance(max_cells, int) or max_cells <= 0:
+            raise ValueError(f"max_cells must be a positive int, got {max_cells!r}")
+        return max_cells
+    if length_m is not None and _concrete(length_m):
+        length = float(np.max(np.asarray(length_m))) if np.size(length_m) else 0.0
+        return max_cells_for(spec, length)
+    return max_cells_for(spec)
+
+
+def trace_lengths(rays: RayBatch) -> Float[Array, "*batch"]:
+    """Length each ray is traced to: the range (HIT), ``r_min`` (SUB) or ``r_max`` (SUP)."""
+    return jnp.where(
+        rays.kind == HIT, rays.ranges, jnp.where(rays.kind == SUB, rays.r_min, rays.r_max)
+    )
+
+
+class RaySummary(NamedTuple):
+    """What the grid sensor models need from one ray traced to length ``L``."""
+
+    tr: Traversal
+    last_cell: Int[Array, " d"]  # last in-grid cell (reflecting cell if `inside`)
+    last_len: Float[Array, ""]  # length (m) travelled in last_cell
+    inside: Bool[Array, ""]  # the point at L lies in the grid (in last_cell)
+    grid_len: Float[Array, ""]  # length (m) travelled inside the grid
+    out_len: Float[Array, ""]  # L - grid_len: length (m) travelled outside the grid
+
+
+def summarize(spec: GridSpec, origin, direction, length, max_cells: int) -> RaySummary:
+    """Traverse one ray and reduce the traversal to :class:`RaySummary`.
+
+    The ray's end point counts as inside the grid when the clipped ray ends at ``length``
+    (``t_end >= length``) and visits at least one cell; then the last visited cell is the
+    cell containing the end point (approached from the ray's side), as in
+    :func:`lidarjax.raytrace.accumulate`.
+    """
+    tr = traverse(spec, origin, direction, length, max_cells)
+    last = tr.is_last & tr.valid
+    last_cell = jnp.sum(jnp.where(last[:, None], tr.cells, 0), axis=0)
+    last_len = jnp.sum(jnp.where(last, tr.lengths, 0.0))
+    grid_len = jnp.sum(jnp.where(tr.valid, tr.lengths, 0.0))
+    inside = jnp.any(tr.valid) & (tr.t_end >= length)
+    out_len = jnp.maximum(length - grid_len, 0.0)
+    return RaySummary(tr, last_cell, last_len, inside, grid_len, out_len)
+
+
+def gather(values: Array, cells: Int[Array, "... d"]) -> Array:
+    """``values[cells]`` for integer index vectors ``cells`` (clipped into the grid)."""
+    idx = tuple(jnp.clip(cells[..., k], 0, values.shape[k] - 1) for k in range(values.ndim))
+    return values[idx]
+
+
+def check_complete(out: Array, complete: Bool[Array, "*batch"]) -> Array:
+    """Attach a run-time check that no traversal ran out of its ``max_cells`` budget."""
+    return eqx.error_if(
+        out, ~complete, "max_cells is too small for some rays; pass a larger max_cells"
+    )
+
+
+def _pose_params(poses) -> Float[Array, "p 4"]:
+    if isinstance(poses, jaxlie.SE2):
+        params = poses.parameters()
+        if params.ndim != 2:
+            raise ValueError(
+                f"poses must be a jaxlie.SE2 with one batch axis [p], got batch axes "
+                f"{poses.get_batch_axes()}"
+            )
+        return params
+    if isinstance(poses, jaxlie.MatrixLieGroup):
+        raise ValueError(f"poses must be a jaxlie.SE2 or a [p 3] array, got {type(poses).__name__}")
+    p = jnp.asarray(poses)
+    if p.ndim != 2 or p.shape[-1] != 3:
+        raise ValueError(f"poses must have shape [p, 3] (x, y, theta), got {p.shape}")
+    return jaxlie.SE2.from_xy_theta(p[:, 0], p[:, 1], p[:, 2]).parameters()
+
+
+@eqx.filter_jit
+def _at_poses(model_fn, model, az, ranges, params, r_min, r_max, chunk_size, max_cells):
+    n = params.shape[0]
+    chunk = min(chunk_size, n)
+    n_chunks = -(-n // chunk)
+    pad = n_chunks * chunk - n
+    padded = jnp.concatenate([params, jnp.broadcast_to(params[:1], (pad, 4))], axis=0)
+
+    def one_chunk(p):
+        rays = from_scan(jaxlie.SE2(p), az, ranges, r_min, r_max)  # [c b]
+        if model is None:
+            return model_fn(rays)
+        return model_fn(model, rays, max_cells=max_cells)
+
+    out = jax.lax.map(one_chunk, padded.reshape(n_chunks, chunk, 4))
+    return out.reshape(n_chunks * chunk, -1)[:n]
+
+
+def ray_log_likelihoods_at_poses(
+    model,
+    azimuths_rad: Float[ArrayLike, " b"],
+    ranges_m: Float[ArrayLike, " b"],
+    poses,
+    *,
+    r_min: float = 0.0,
+    r_max: float = np.inf,
+    chunk_size: int = 64,
+    max_cells: int | None = None,
+) -> Float[Array, "p b"]:
+    """Per-ray log-likelihoods of one 2-D scan evaluated at many sensor poses.
+
+    Args:
+        model: a :class:`~lidarjax.maps.DecayRateMap`, :class:`~lidarjax.maps.ReflectionMap`
+            or :class:`~lidarjax.maps.EndpointMap` (dispatched to the matching model), or a
+            callable ``fn(rays) -> [*batch]``.
+        azimuths_rad: ``[b]`` beam angles relative to the sensor heading (rad).
+        ranges_m: ``[b]`` raw range readings (m), classified by ``r_min``/``r_max``.
+        poses: ``[p 3]`` array of ``(x, y, theta)`` (m, m, rad) or a ``jaxlie.SE2`` with
+            batch axes ``[p]`` (world-from-sensor).
+        r_min: minimum range (m).
+        r_max: maximum range (m).
+        chunk_size: poses evaluated together (``vmap``); chunks run sequentially with
+            ``lax.map`` to bound memory.
+        max_cells: traversal budget per ray; default never truncates.
+
+    Returns:
+        ``[p b]`` log-likelihoods (differentiable w.r.t. ``poses``).
+    """
+    from ..maps._grid import DecayRateMap, EndpointMap, ReflectionMap
+    from ._decay_rate import log_likelihood as _decay
+    from ._endpoint import log_likelihood as _endpoint
+    from ._reflection import log_likelihood as _reflection
+
+    if not isinstance(chunk_size, int) or chunk_size <= 0:
+        raise ValueError(f"chunk_size must be a positive int, got {chunk_size!r}")
+    az = jnp.asarray(azimuths_rad, dtype=jnp.result_type(float))
+    ranges = jnp.asarray(ranges_m, dtype=az.dtype)
+    if az.ndim != 1 or ranges.shape != az.shape:
+        raise ValueError(
+            f"azimuths_rad and ranges_m must both have shape [b], got {az.shape} and {ranges.shape}"
+        )
+    if not (_concrete(r_min) and _concrete(r_max)):
+        raise ValueError("r_min and r_max must be concrete numbers")
+    if not (np.isfinite(float(r_min)) and 0 <= float(r_min) < float(r_max)):
+        raise ValueError(f"need 0 <= r_min < r_max, got r_min={r_min}, r_max={r_max}")
+    params = _pose_params(poses)
+    dispatch = {DecayRateMap: _decay, ReflectionMap: _reflection, EndpointMap: _endpoint}
+    model_fn = dispatch.get(type(model))
+    if model_fn is not None:
+        if model.spec.dim != 2:
+            raise ValueError(f"model must be a 2-D map for 2-D scans, got {model.spec.dim}-D")
+        budget = r_max if model_fn is not _endpoint else float(r_max) - float(r_min)
+        mc = default_max_cells(model.spec, budget, max_cells)
+        return _at_poses(
+            model_fn, model, az, ranges, params, float(r_min), float(r_max), chunk_size, mc
+        )
+    if callable(model):
+        return _at_poses(
+            model, None, az, ranges, params, float(r_min), float(r_max), chunk_size, None
+        )
+    raise ValueError(
+        f"model must be a DecayRateMap, ReflectionMap, EndpointMap or a callable, got "
+        f"{type(model).__name__}"
+    )
+
+
+def log_likelihood_at_poses(
+    model: Callable | object,
+    azimuths_rad: Float[ArrayLike, " b"],
+    ranges_m: Float[ArrayLike, " b"],
+    poses,
+    *,
+    r_min: float = 0.0,
+    r_max: float = np.inf,
+    chunk_size: int = 64,
+    max_cells: int | None = None,
+) -> Float[Array, " p"]:
+    """Summed log-likelihood of one 2-D scan at each of many poses, Eq. (7.15).
+
+    Same arguments as :func:`ray_log_likelihoods_at_poses`.
+
+    Returns:
+        ``[p]`` log-likelihoods ``sum_b log p(z_b | s_p, m)``.
+    """
+    return jnp.sum(
+        ray_log_likelihoods_at_poses(
+            model,
+            azimuths_rad,
+            ranges_m,
+            poses,
+            r_min=r_min,
+            r_max=r_max,
+            chunk_size=chunk_size,
+            max_cells=max_cells,
+        ),
+        axis=-1,
+    )

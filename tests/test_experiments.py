@@ -12,9 +12,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def run_experiment(name: str, out: Path, *overrides: str) -> dict:
     cmd = [sys.executable, str(ROOT / "experiments" / f"{name}.py"), f"hydra.run.dir={out}"]
-    proc = subprocess.run(
-        [*cmd, *overrides], capture_output=True, text=True, timeout=600, cwd=ROOT
-    )
+    proc = subprocess.run([*cmd, *overrides], capture_output=True, text=True, timeout=600, cwd=ROOT)
     assert proc.returncode == 0, proc.stderr[-3000:]
     return json.loads((out / "results.json").read_text())
 
@@ -79,4 +77,39 @@ def test_posterior_corridor_small(tmp_path):
                 ref = stats.t.sf(t, 199)
                 assert abs(p - ref) <= 1e-6 * max(ref, 1e-300) + 1e-12, (name, p, ref)
     for f in ("figure_8_2.png", "results.md", "results.json"):
+        assert (tmp_path / f).stat().st_size > 0
+
+
+def test_pose_likelihood_small(tmp_path):
+    # CI-sized: one small log, two odd scans, all beams, 20 sample poses per metric.
+    res = run_experiment(
+        "pose_likelihood",
+        tmp_path,
+        "logs=[orebro]",
+        "eval.max_scans=2",
+        "inverse_kl.n_samples=20",
+        "kl.n_samples=20",
+    )
+    (row,) = res["rows"]
+    assert row["log"] == "orebro"
+    assert row["eval_scan_indices"] == [1, 235]  # first and last odd scan of 237
+    assert row["n_eval_rays"] == 2 * 181 and row["eval_beam_stride"] == 1
+    values = [
+        *row["dprime"].values(),
+        *row["inverse_kl"].values(),
+        *row["ll_sum"].values(),
+        *row["kl_sum"].values(),
+        *row["ll_ratio"].values(),
+        *row["kl_ratio"].values(),
+    ]
+    assert all(isinstance(v, float) and abs(v) < 1e9 for v in values)
+    # The ML maps make some rays impossible (floored); the full posteriors almost never do.
+    assert row["floored_fraction"]["dec"] > 0.02
+    assert row["floored_fraction"]["fmp_dec"] < row["floored_fraction"]["dec"]
+    assert row["floored_fraction"]["fmp_ref"] < row["floored_fraction"]["mlm_ref"]
+    # Paper orderings that hold with a wide margin on this log (Tables 7.3a and 8.2).
+    pr = row["dprime_per_ray"]
+    assert pr["dec"] < 0.9 * pr["ref"] and pr["dec"] < 0.9 * pr["end"]
+    assert row["orderings"]["fmp_better_ll_ref"] and row["orderings"]["fmp_better_ll_dec"]
+    for f in ("pose_likelihood.png", "results.md", "results.json"):
         assert (tmp_path / f).stat().st_size > 0

@@ -194,7 +194,10 @@ class _WalkState(eqx.Module):
 class _Ray(eqx.Module):
     origin: Float[Array, " d"]
     direction: Float[Array, " d"]
-    t_base: Float[Array, " d"]  # boundary parameter of cell index c is t_base + c * t_scale
+    # next boundary of cell c along axis k: t_first_k + (c_k - c0_k) * t_scale_k, measured
+    # from the first cell so that round-off does not grow with the distance to the origin
+    t_first: Float[Array, " d"]
+    c0: Int[Array, " d"]
     t_scale: Float[Array, " d"]
     t_start: Float[Array, ""]
     t_end: Float[Array, ""]
@@ -245,10 +248,11 @@ def _setup(spec: GridSpec, origin, direction, length) -> tuple[_Ray, _WalkState]
     eps = jnp.finfo(dtype).eps
     tol = 32 * eps * (t1 + spec.resolution)
     # Next boundary of cell c along axis k: lo_k + (c_k + up_k) * res, reached at
-    # t = (lo_k + up_k * res - o_k) / d_k + c_k * res / d_k (inf for d_k = 0).
-    t_base = jnp.where(moving, (lo + (d > 0) * spec.resolution - o) / d_safe, jnp.inf)
+    # t = (lo_k - o_k + (c0_k + up_k) * res) / d_k + (c_k - c0_k) * res / d_k (inf if d_k = 0).
+    first = (lo - o + (cell + (d > 0)).astype(dtype) * spec.resolution) / d_safe
+    t_first = jnp.where(moving, first, jnp.inf)
     t_scale = jnp.where(moving, spec.resolution / d_safe, 0.0)
-    return _Ray(o, d, t_base, t_scale, t0, t1, tol), _WalkState(cell, t0, active)
+    return _Ray(o, d, t_first, cell, t_scale, t0, t1, tol), _WalkState(cell, t0, active)
 
 
 def _step(spec: GridSpec, ray: _Ray, state: _WalkState):
@@ -256,7 +260,7 @@ def _step(spec: GridSpec, ray: _Ray, state: _WalkState):
     d = ray.direction
     moving = d != 0
     up = d > 0
-    t_axis = ray.t_base + state.cell.astype(d.dtype) * ray.t_scale
+    t_axis = ray.t_first + (state.cell - ray.c0).astype(d.dtype) * ray.t_scale
     t_min = jnp.min(t_axis)
     last = t_min >= ray.t_end - ray.tol
     t_stop = jnp.where(last, ray.t_end, t_min)
@@ -437,15 +441,19 @@ def _accumulate(
             return jnp.any(carry[1].active)
 
         def body(carry):
-            (rv, hits), s, last_cell = carry
+            (rv, hits), s, last_cell, ended = carry
             (cell, seg, valid, last), s = step(ray, s)
             upd = jax.lax.complex(seg, valid.astype(dtype))
             rv = rv.at[flat_index(cell, valid)].add(upd, mode="promise_in_bounds")
-            last_cell = jnp.where((valid & last)[:, None], cell, last_cell)
-            return (rv, hits), s, last_cell
+            is_end = valid & last
+            last_cell = jnp.where(is_end[:, None], cell, last_cell)
+            return (rv, hits), s, last_cell, ended | is_end
 
-        (rv, hits), _, last_cell = jax.lax.while_loop(cond, body, (acc, state, state.cell))
-        hits = hits.at[flat_index(last_cell, ends_inside)].add(1, mode="promise_in_bounds")
+        init = (acc, state, state.cell, jnp.zeros_like(state.active))
+        (rv, hits), _, last_cell, ended = jax.lax.while_loop(cond, body, init)
+        # only rays whose walk reached their end cell record a hit there
+        hit_flat = flat_index(last_cell, ends_inside & ended)
+        hits = hits.at[hit_flat].add(1, mode="promise_in_bounds")
         return (rv, hits), None
 
     (rv, hits), _ = jax.lax.scan(chunk_body, acc0, (o_c, d_c, l_c, h_c, u_c))
@@ -459,7 +467,7 @@ def accumulate(
     spec: GridSpec,
     rays: RayBatch,
     *,
-    chunk_size: int = 2048,
+    chunk_size: int = 1024,
     sub_rays: Literal["ignore", "hit"] = "ignore",
 ) -> GridStats:
     """Per-cell hit counts H, miss counts M and travelled lengths R of a ray batch.

@@ -12,7 +12,7 @@ Cases:
 
 Correctness comes first: a float64 subprocess with FMA contraction disabled
 (:func:`worker_check`) requires :func:`accumulate` and the vectorised NumPy reference
-(:mod:`benchmarks.numpy_reference`) to agree exactly on the hit and miss counts and to
+(:mod:`benchmarks._numpy_reference`) to agree exactly on the hit and miss counts and to
 ``1e-9`` on the lengths, on random 2-D/3-D rays with boundary, corner and axis-parallel cases
 and on the Intel log. Every timed case is then checked again on its own inputs, allowing
 only rounding-level tie differences (see :func:`_compare`), before the timings are taken:
@@ -49,7 +49,7 @@ import jax.numpy as jnp
 import jaxlie
 import numpy as np
 
-from benchmarks.numpy_reference import accumulate_numpy
+from benchmarks._numpy_reference import accumulate_numpy
 from lidarjax import rays as lr
 from lidarjax.datasets import fetch, load_carmen
 from lidarjax.raytrace import GridSpec, accumulate

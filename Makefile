@@ -29,7 +29,7 @@ bench: $(STAMP)
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .
-	$(VENV)/bin/ruff format --check .
+	$(VENV)/bin/ruff format --check lidarjax tests experiments benchmarks
 
 clean:
 	rm -rf $(VENV) outputs multirun .pytest_cache

@@ -1,0 +1,23 @@
+"""The README's Python examples run as written (against the shared real data)."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+
+README = Path(__file__).resolve().parents[1] / "README.md"
+
+
+def test_readme_examples_run():
+    blocks = re.findall(r"```python\n(.*?)```", README.read_text(), flags=re.S)
+    assert len(blocks) >= 2
+    ns: dict = {}
+    for code in blocks:  # later blocks continue the earlier ones
+        exec(compile(code, str(README), "exec"), ns)
+    assert ns["log"].ranges_m.shape == (910, 180)
+    assert int(ns["stats"].hits.sum()) == ns["rays"].counts()["HIT"]
+    assert ns["ll"].shape == (180,) and ns["ll_fmp"].shape == (180,)
+    assert np.all(np.isfinite(np.asarray(ns["ll_fmp"])))
+    assert ns["scores"].shape == (100,)

@@ -3,6 +3,7 @@ traversal summary and the pose-batched evaluation of 2-D scans."""
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable
 from typing import NamedTuple
@@ -117,6 +118,18 @@ def gather(values: Array, cells: Int[Array, "... d"]) -> Array:
     """``values[cells]`` for integer index vectors ``cells`` (clipped into the grid)."""
     idx = tuple(jnp.clip(cells[..., k], 0, values.shape[k] - 1) for k in range(values.ndim))
     return values[idx]
+
+
+@functools.partial(jax.jit, static_argnames=("one_ray", "max_cells"))
+def map_over_rays(one_ray: Callable, m, rays: RayBatch, max_cells: int) -> Array:
+    """``one_ray(m, origin, direction, length, kind, max_cells) -> (value, complete)``
+    vmapped over a ray batch (traced to :func:`trace_lengths`), reshaped to ``[*batch]``,
+    with a run-time check that no traversal ran out of its budget."""
+    flat = rays.flatten()
+    out, complete = jax.vmap(functools.partial(one_ray, m, max_cells=max_cells))(
+        flat.origins, flat.directions, trace_lengths(flat), flat.kind
+    )
+    return check_complete(out, complete).reshape(rays.shape)
 
 
 def check_complete(out: Array, complete: Bool[Array, "*batch"]) -> Array:

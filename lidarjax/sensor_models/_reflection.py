@@ -3,20 +3,17 @@
 
 from __future__ import annotations
 
-import functools
-
-import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from ..maps._grid import ReflectionMap
 from ..rays import HIT, SUB, RayBatch
 from ._common import (
-    check_complete,
     check_model_inputs,
     default_max_cells,
     gather,
     log1mexp,
+    map_over_rays,
     mul0,
     safe_log,
     summarize,
@@ -73,15 +70,6 @@ def _one_ray(m: ReflectionMap, origin, direction, length, kind, max_cells: int):
     return out, s.tr.complete
 
 
-@functools.partial(jax.jit, static_argnames=("max_cells",))
-def _log_likelihood(m: ReflectionMap, rays: RayBatch, max_cells: int):
-    flat = rays.flatten()
-    out, complete = jax.vmap(functools.partial(_one_ray, m, max_cells=max_cells))(
-        flat.origins, flat.directions, trace_lengths(flat), flat.kind
-    )
-    return check_complete(out, complete).reshape(rays.shape)
-
-
 def log_likelihood(
     map: ReflectionMap, rays: RayBatch, *, max_cells: int | None = None
 ) -> Float[Array, "*batch"]:
@@ -121,4 +109,4 @@ def log_likelihood(
     """
     check_model_inputs(map, ReflectionMap, rays)
     mc = default_max_cells(map.spec, trace_lengths(rays), max_cells)
-    return _log_likelihood(map, rays, max_cells=mc)
+    return map_over_rays(_one_ray, map, rays, max_cells=mc)

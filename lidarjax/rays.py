@@ -29,8 +29,22 @@ SUP: int = 2
 KIND_NAMES = {HIT: "HIT", SUB: "SUB", SUP: "SUP"}
 
 
-def _is_concrete(x) -> bool:
+def is_concrete(x) -> bool:
+    """True for a concrete value, False for a value traced under ``jit``/``vmap``/``grad``
+    (whose run-time values can only be checked with ``eqx.error_if``)."""
     return not isinstance(x, jax.core.Tracer)
+
+
+def _scan_batch(T_world_sensor, data_axes: tuple[int, ...], name: str) -> tuple[int, ...]:
+    """Broadcast shape of the pose batch axes and a data argument's scan axes."""
+    pose_batch = T_world_sensor.get_batch_axes()
+    try:
+        return jnp.broadcast_shapes(pose_batch, data_axes)
+    except ValueError as e:
+        raise ValueError(
+            f"T_world_sensor batch axes {pose_batch} do not broadcast with {name} scan axes "
+            f"{data_axes}"
+        ) from e
 
 
 def check_finite_nonnegative(x: ArrayLike, name: str) -> Array:
@@ -43,7 +57,7 @@ def check_finite_nonnegative(x: ArrayLike, name: str) -> Array:
         x: values to check, any shape.
         name: the argument's name, quoted in the error message.
     """
-    if _is_concrete(x):
+    if is_concrete(x):
         arr = np.asarray(x)
         if arr.size and not np.issubdtype(arr.dtype, np.number):
             raise ValueError(f"{name} must be numeric, got dtype {arr.dtype}")
@@ -153,7 +167,7 @@ def classify(ranges_m: Float[Array, "*batch"], r_min, r_max) -> Int[Array, "*bat
 
 
 def _check_limits(r_min, r_max) -> tuple[Array, Array]:
-    if _is_concrete(r_min) and _is_concrete(r_max):
+    if is_concrete(r_min) and is_concrete(r_max):
         lo, hi = float(r_min), float(r_max)
         if not (np.isfinite(lo) and lo >= 0):
             raise ValueError(f"r_min must be finite and >= 0, got {lo}")
@@ -199,14 +213,7 @@ def from_scan(
             f"ranges_m must have shape [*scans, {az.shape[0]}] to match azimuths_rad, "
             f"got {ranges.shape}"
         )
-    pose_batch = T_world_sensor.get_batch_axes()
-    try:
-        batch = jnp.broadcast_shapes(pose_batch, ranges.shape[:-1])
-    except ValueError as e:
-        raise ValueError(
-            f"T_world_sensor batch axes {pose_batch} do not broadcast with ranges_m scan axes "
-            f"{ranges.shape[:-1]}"
-        ) from e
+    batch = _scan_batch(T_world_sensor, ranges.shape[:-1], "ranges_m")
     lo, hi = _check_limits(r_min, r_max)
     b = az.shape[0]
     xy = T_world_sensor.translation().astype(az.dtype)  # [*P 2]
@@ -254,7 +261,7 @@ def from_points(
         raise ValueError(
             f"T_world_sensor must be a jaxlie.SE3, got {type(T_world_sensor).__name__}"
         )
-    if _is_concrete(points_xyz):
+    if is_concrete(points_xyz):
         pts_np = np.asarray(points_xyz)
         if not np.all(np.isfinite(pts_np)):
             raise ValueError(
@@ -266,14 +273,7 @@ def from_points(
         pts = eqx.error_if(pts, ~jnp.isfinite(pts), "points_xyz contains NaN/inf values")
     if pts.ndim < 2 or pts.shape[-1] != 3:
         raise ValueError(f"points_xyz must have shape [*scans, n, 3], got {pts.shape}")
-    pose_batch = T_world_sensor.get_batch_axes()
-    try:
-        batch = jnp.broadcast_shapes(pose_batch, pts.shape[:-2])
-    except ValueError as e:
-        raise ValueError(
-            f"T_world_sensor batch axes {pose_batch} do not broadcast with points_xyz scan axes "
-            f"{pts.shape[:-2]}"
-        ) from e
+    batch = _scan_batch(T_world_sensor, pts.shape[:-2], "points_xyz")
     lo, hi = _check_limits(r_min, r_max)
     n = pts.shape[-2]
     rng = jnp.linalg.norm(pts, axis=-1)  # [*S n]

@@ -35,7 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from .rays import HIT, SUB, SUP, RayBatch
+from .rays import HIT, SUB, SUP, RayBatch, is_concrete
 
 
 class GridSpec(eqx.Module):
@@ -58,7 +58,7 @@ class GridSpec(eqx.Module):
         origin = jnp.asarray(origin, dtype=jnp.result_type(float))
         if origin.shape != (len(shape),):
             raise ValueError(f"origin must have shape ({len(shape)},), got {origin.shape}")
-        if not isinstance(resolution, jax.core.Tracer):
+        if is_concrete(resolution):
             res = float(resolution)
             if not (np.isfinite(res) and res > 0):
                 raise ValueError(f"resolution must be a positive finite number, got {res}")

@@ -22,6 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
+from ..rays import is_concrete
 from ..raytrace import GridSpec, GridStats
 
 
@@ -31,7 +32,7 @@ def _check_stats(stats) -> None:
 
 
 def _check_scalar(value, name: str, *, lo: float = 0.0, hi: float | None = None) -> None:
-    if isinstance(value, jax.core.Tracer):
+    if not is_concrete(value):
         return
     if np.ndim(value) != 0:
         raise ValueError(f"{name} must be a scalar, got shape {np.shape(value)}")
@@ -252,7 +253,7 @@ def endpoint_map(
     """
     _check_stats(stats)
     _check_scalar(sigma_m, "sigma_m")
-    if not isinstance(sigma_m, jax.core.Tracer) and float(sigma_m) <= 0:
+    if is_concrete(sigma_m) and float(sigma_m) <= 0:
         raise ValueError(f"sigma_m must be > 0, got {sigma_m}")
     _check_scalar(occupied_threshold, "occupied_threshold", hi=1.0)
     _check_scalar(z_hit, "z_hit")

@@ -34,7 +34,7 @@ import jax.numpy as jnp
 from jax.scipy.special import betainc
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-from ..rays import HIT, SUB, SUP, RayBatch
+from ..rays import HIT, SUB, SUP, RayBatch, is_concrete
 from ..raytrace import GridSpec, GridStats, max_cells_for, traverse_rays
 
 __all__ = [
@@ -56,16 +56,12 @@ PriorName = Literal["moments", "uniform"]
 # --------------------------------------------------------------------------------------
 
 
-def _is_concrete(x) -> bool:
-    return not isinstance(x, jax.core.Tracer)
-
-
 def _check_param(x, name: str, *, allow_zero: bool) -> Array:
     """A scalar prior parameter: finite and > 0 (or >= 0 with ``allow_zero``)."""
     if jnp.shape(x) != ():
         raise ValueError(f"{name} must be a scalar, got shape {jnp.shape(x)}")
     bound = ">= 0" if allow_zero else "> 0"
-    if _is_concrete(x):
+    if is_concrete(x):
         v = float(x)
         ok = math.isfinite(v) and (v >= 0 if allow_zero else v > 0)
         if not ok:
@@ -95,7 +91,7 @@ def _masked_moments(values, mask, name: str) -> tuple[Array, Array]:
     """Empirical mean and (population, ddof=0) variance of ``values[mask]``."""
     mask = jnp.asarray(mask)
     n = jnp.sum(mask)
-    if _is_concrete(n) and int(n) < 2:
+    if is_concrete(n) and int(n) < 2:
         raise ValueError(
             f"{name}: moment matching (section 8.5) needs at least 2 observed cells, got {int(n)}"
         )
@@ -109,7 +105,7 @@ def _masked_moments(values, mask, name: str) -> tuple[Array, Array]:
 def _check_matched(alpha, beta, name: str, detail: str) -> tuple[Array, Array]:
     bad = ~(jnp.isfinite(alpha) & jnp.isfinite(beta) & (alpha > 0) & (beta > 0))
     msg = f"{name}: moment-matched prior is invalid ({detail})"
-    if _is_concrete(bad):
+    if is_concrete(bad):
         if bool(bad):
             raise ValueError(f"{msg}; got alpha={float(alpha)}, beta={float(beta)}")
         return alpha, beta
@@ -562,7 +558,7 @@ def occupancy(beta_map: BetaPosteriorMap, mu_o: float | ArrayLike = 0.2) -> Floa
         raise ValueError(f"beta_map must be a BetaPosteriorMap, got {type(beta_map).__name__}")
     if jnp.shape(mu_o) != ():
         raise ValueError(f"mu_o must be a scalar, got shape {jnp.shape(mu_o)}")
-    if _is_concrete(mu_o):
+    if is_concrete(mu_o):
         m = float(mu_o)
         if not (0.0 <= m <= 1.0):
             raise ValueError(f"mu_o must lie in [0, 1], got {m}")

@@ -22,6 +22,8 @@ import numpy as np
 from jax.scipy.special import logsumexp
 from jaxtyping import Array, ArrayLike, Bool, Float
 
+from ..rays import is_concrete
+
 __all__ = [
     "p_ref",
     "map_rmse",
@@ -31,10 +33,6 @@ __all__ = [
     "kl_to_gaussian",
     "gaussian_log_density",
 ]
-
-
-def _is_concrete(x) -> bool:
-    return not isinstance(x, jax.core.Tracer)
 
 
 def p_ref(
@@ -54,13 +52,13 @@ def p_ref(
     Returns:
         ``[*shape]`` reflection probabilities in ``[0, 1]``.
     """
-    if _is_concrete(rates):
+    if is_concrete(rates):
         r = np.asarray(rates)
         if np.any(np.isnan(r)) or np.any(r < 0):
             raise ValueError("rates must be >= 0 and not NaN")
     if jnp.shape(distance_m) != ():
         raise ValueError(f"distance_m must be a scalar, got shape {jnp.shape(distance_m)}")
-    if _is_concrete(distance_m):
+    if is_concrete(distance_m):
         dm = float(distance_m)
         if not (math.isfinite(dm) and dm > 0):
             raise ValueError(f"distance_m must be finite and > 0, got {dm}")
@@ -101,7 +99,7 @@ def map_rmse(
     if mask.dtype != jnp.bool_:
         raise ValueError(f"mask must be boolean, got dtype {mask.dtype}")
     n = jnp.sum(mask)
-    if _is_concrete(n):
+    if is_concrete(n):
         if int(n) == 0:
             raise ValueError("mask selects no cells")
     else:
@@ -187,7 +185,7 @@ def gaussian_log_density(
         raise ValueError(f"true_pose must have shape ({k},), got {mu.shape}")
     if cov.shape != (k, k):
         raise ValueError(f"cov must have shape ({k}, {k}), got {cov.shape}")
-    if _is_concrete(cov):
+    if is_concrete(cov):
         c = np.asarray(cov)
         if not np.allclose(c, c.T) or np.any(np.linalg.eigvalsh(c) <= 0):
             raise ValueError("cov must be symmetric positive definite")
@@ -214,7 +212,7 @@ def _check_samples(log_lik_samples, sample_poses) -> Array:
         raise ValueError(
             f"sample_poses has {m} poses but log_lik_samples has {ll.shape[0]} entries"
         )
-    if _is_concrete(ll):
+    if is_concrete(ll):
         v = np.asarray(ll)
         if np.any(np.isnan(v)) or np.any(v == np.inf):
             raise ValueError("log_lik_samples must not contain NaN or +inf")

@@ -15,7 +15,7 @@ import jaxlie
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from ..rays import HIT, SUB, RayBatch, from_scan
+from ..rays import HIT, SUB, RayBatch, from_scan, is_concrete
 from ..raytrace import GridSpec, Traversal, max_cells_for, traverse
 
 _LOG2 = math.log(2.0)
@@ -61,10 +61,6 @@ def check_model_inputs(model, model_type: type, rays, name: str = "map") -> None
         )
 
 
-def _concrete(x) -> bool:
-    return not isinstance(x, jax.core.Tracer)
-
-
 def default_max_cells(spec: GridSpec, length_m, max_cells: int | None) -> int:
     """A ``traverse`` budget: ``max_cells`` if given, else :func:`max_cells_for` the
     longest trace ``length_m`` (m) when it is concrete, else for the whole grid."""
@@ -72,7 +68,7 @@ def default_max_cells(spec: GridSpec, length_m, max_cells: int | None) -> int:
         if not isinstance(max_cells, int) or max_cells <= 0:
             raise ValueError(f"max_cells must be a positive int, got {max_cells!r}")
         return max_cells
-    if length_m is not None and _concrete(length_m):
+    if length_m is not None and is_concrete(length_m):
         length = float(np.max(np.asarray(length_m))) if np.size(length_m) else 0.0
         return max_cells_for(spec, length)
     return max_cells_for(spec)
@@ -217,7 +213,7 @@ def ray_log_likelihoods_at_poses(
         raise ValueError(
             f"azimuths_rad and ranges_m must both have shape [b], got {az.shape} and {ranges.shape}"
         )
-    if not (_concrete(r_min) and _concrete(r_max)):
+    if not (is_concrete(r_min) and is_concrete(r_max)):
         raise ValueError("r_min and r_max must be concrete numbers")
     if not (np.isfinite(float(r_min)) and 0 <= float(r_min) < float(r_max)):
         raise ValueError(f"need 0 <= r_min < r_max, got r_min={r_min}, r_max={r_max}")

@@ -330,6 +330,149 @@ def traverse(
     )
 
 
+class RayFold(eqx.Module):
+    """A traversal reduced to what the grid sensor models need (see :func:`fold_traversal`
+    and :func:`fold_rays`). Fields have the rays' batch shape ``[*b]``.
+
+    Attributes:
+        body: ``sum term(cell, length)`` over the visited cells except the final one.
+        last_cell: ``[*b d]`` final visited cell (where the ray ends or leaves the grid);
+            meaningless where ``any_valid`` is False.
+        last_len: length (m) travelled in ``last_cell`` (0 where ``any_valid`` is False).
+        grid_len: total length (m) travelled inside the grid.
+        any_valid: the ray visits at least one cell.
+        t_start: ray parameter (m) where the clipped ray starts.
+        t_end: ray parameter (m) where the clipped ray ends.
+        complete: False if a fixed cell budget truncated the ray (scan path only).
+    """
+
+    body: Array
+    last_cell: Array
+    last_len: Array
+    grid_len: Array
+    any_valid: Array
+    t_start: Array
+    t_end: Array
+    complete: Array
+
+
+def fold_traversal(tr: Traversal, term) -> RayFold:
+    """Reduce a (possibly batched) :class:`Traversal` to a :class:`RayFold`.
+
+    Args:
+        tr: traversal with fields ``[*b max_cells ...]``.
+        term: ``term(cells [..., d] int32, lengths [...]) -> [...]``, elementwise; its
+            value on padding entries is discarded.
+
+    Differentiable like :func:`traverse`.
+    """
+    last = tr.is_last & tr.valid
+    body_mask = tr.valid & ~last
+    vals = term(tr.cells, tr.lengths)
+    body = jnp.sum(jnp.where(body_mask, vals, 0.0), axis=-1)
+    last_cell = jnp.sum(jnp.where(last[..., None], tr.cells, 0), axis=-2)
+    last_len = jnp.sum(jnp.where(last, tr.lengths, 0.0), axis=-1)
+    grid_len = jnp.sum(jnp.where(tr.valid, tr.lengths, 0.0), axis=-1)
+    return RayFold(
+        body=body,
+        last_cell=last_cell,
+        last_len=last_len,
+        grid_len=grid_len,
+        any_valid=jnp.any(tr.valid, axis=-1),
+        t_start=tr.t_start,
+        t_end=tr.t_end,
+        complete=tr.complete,
+    )
+
+
+@eqx.filter_jit
+def fold_rays(
+    spec: GridSpec,
+    origins: Float[Array, "n d"],
+    directions: Float[Array, "n d"],
+    lengths: Float[Array, " n"],
+    term,
+    chunk_size: int = 2048,
+) -> RayFold:
+    """:func:`fold_traversal` of many rays without a per-ray cell budget (forward only).
+
+    Rays are sorted by expected cell count and walked in chunks of ``chunk_size``, each
+    chunk in a ``lax.while_loop`` that stops when its longest ray is done, so the work is
+    close to the number of cells actually visited (unlike ``traverse``'s fixed budget) and
+    no ray is truncated. The walk is the same as :func:`traverse`'s (same cells, same
+    lengths); only the summation order of ``body`` differs. Not reverse-differentiable
+    (use :func:`fold_traversal` for gradients).
+
+    Args:
+        spec: the grid.
+        origins: ``[n d]`` ray starts (m).
+        directions: ``[n d]`` directions (normalised internally).
+        lengths: ``[n]`` lengths (m), ``inf`` traces to the grid border.
+        term: ``term(cells [c d] int32, lengths [c]) -> [c]``, elementwise. A plain
+            function is compiled in as a constant; pass a :class:`jax.tree_util.Partial` or
+            an ``equinox.Module`` to keep the arrays it closes over traced.
+        chunk_size: rays walked together.
+
+    Returns:
+        A :class:`RayFold` with fields of leading shape ``[n]`` (``complete`` all True).
+    """
+    n, dim = origins.shape
+    dtype = jnp.result_type(origins.dtype, spec.origin.dtype)
+    chunk = max(1, min(chunk_size, n))
+    unit_sum = jnp.sum(jnp.abs(directions), axis=-1) / jnp.maximum(
+        jnp.sqrt(jnp.sum(directions * directions, axis=-1)), jnp.finfo(dtype).tiny
+    )
+    work = unit_sum * jnp.minimum(lengths, _box_diagonal(spec))
+    order = jnp.argsort(work)
+    n_chunks = -(-n // chunk)
+    pad = n_chunks * chunk - n
+
+    def prep(x):
+        x = x[order]
+        widths = [(0, pad)] + [(0, 0)] * (x.ndim - 1)
+        return jnp.pad(x, widths).reshape(n_chunks, chunk, *x.shape[1:])
+
+    setup = jax.vmap(functools.partial(_setup, spec))
+    step = jax.vmap(functools.partial(_step, spec))
+
+    def one_chunk(xs):
+        o, d, length = xs
+        ray, state = setup(o.astype(dtype), d.astype(dtype), length.astype(dtype))
+        zero = jnp.zeros(o.shape[0], dtype)
+        init = (state, zero, state.cell, zero, zero, jnp.zeros(o.shape[0], bool))
+
+        def cond(carry):
+            return jnp.any(carry[0].active)
+
+        def body(carry):
+            s, acc, last_cell, last_len, grid_len, any_valid = carry
+            (cell, seg, valid, last), s = step(ray, s)
+            vals = term(cell, seg)
+            acc = acc + jnp.where(valid & ~last, vals, 0.0)
+            is_end = valid & last
+            last_cell = jnp.where(is_end[:, None], cell, last_cell)
+            last_len = jnp.where(is_end, seg, last_len)
+            return s, acc, last_cell, last_len, grid_len + seg, any_valid | valid
+
+        _, acc, last_cell, last_len, grid_len, any_valid = jax.lax.while_loop(cond, body, init)
+        return acc, last_cell, last_len, grid_len, any_valid, ray.t_start, ray.t_end
+
+    outs = jax.lax.map(one_chunk, (prep(origins), prep(directions), prep(lengths)))
+    inv = jnp.argsort(order)
+    outs = [x.reshape(n_chunks * chunk, *x.shape[2:])[:n][inv] for x in outs]
+    acc, last_cell, last_len, grid_len, any_valid, t_start, t_end = outs
+    return RayFold(
+        body=acc,
+        last_cell=last_cell,
+        last_len=last_len,
+        grid_len=grid_len,
+        any_valid=any_valid,
+        t_start=t_start,
+        t_end=t_end,
+        complete=jnp.ones(n, bool),
+    )
+
+
 def max_cells_for(spec: GridSpec, length_m: float | None = None) -> int:
     """A ``max_cells`` budget for :func:`traverse` that no ray of length ``length_m`` (m)
     can exceed in this grid (default: rays crossing the whole grid)."""
@@ -543,6 +686,9 @@ __all__ = [
     "max_cells_for",
     "accumulate",
     "expected_cell_count",
+    "RayFold",
+    "fold_traversal",
+    "fold_rays",
     "SUB",
     "SUP",
     "HIT",

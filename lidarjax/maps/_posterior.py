@@ -32,10 +32,10 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jax.scipy.special import betainc
-from jaxtyping import Array, ArrayLike, Bool, Float
+from jaxtyping import Array, ArrayLike, Float
 
 from ..rays import HIT, SUB, SUP, RayBatch, is_concrete
-from ..raytrace import GridSpec, GridStats, max_cells_for, traverse_rays
+from ..raytrace import GridSpec, GridStats, RayFold, fold_traversal, max_cells_for, traverse
 
 __all__ = [
     "BetaPosteriorMap",
@@ -488,51 +488,70 @@ def log_likelihood(
     return _log_likelihood(posterior_map, rays, max_cells=max_cells)
 
 
+def _ref_term(a, b, cells, lengths):
+    return _log_l_ref(_gather(a, cells), _gather(b, cells), False)
+
+
+def _dec_term(a, b, cells, lengths):
+    return _log_l_dec(_gather(a, cells), _gather(b, cells), lengths, False)
+
+
+def term(posterior_map):
+    """Per-cell summand of ``log L`` for a cell the ray passes without reflection."""
+    fn = _ref_term if isinstance(posterior_map, BetaPosteriorMap) else _dec_term
+    return jax.tree_util.Partial(fn, posterior_map.a, posterior_map.b)
+
+
+def finish(posterior_map, f: RayFold, origin, direction, trace_len, kind):
+    """``log L(z, x)`` of rays from their :class:`~lidarjax.raytrace.RayFold` (any batch)."""
+    spec = posterior_map.spec
+    dtype = f.body.dtype
+    is_hit = kind == HIT
+    eps = jnp.finfo(dtype).eps
+    tol = 32 * eps * (f.t_end + spec.resolution)
+    ends_inside = f.any_valid & (f.t_end >= trace_len - tol)
+    delta_last = is_hit & ends_inside
+    # a cell entered with zero length counts only if it reflects the ray
+    entered_last = f.any_valid & ((f.last_len > 0) | delta_last)
+    r_out = jnp.maximum(trace_len - (f.t_end - f.t_start), 0.0)
+    delta_out = is_hit & ~ends_inside
+    out_used = (r_out > tol) | delta_out
+    a_k = _gather(posterior_map.a, f.last_cell)
+    b_k = _gather(posterior_map.b, f.last_cell)
+    alpha, beta = posterior_map.alpha, posterior_map.beta
+    if isinstance(posterior_map, BetaPosteriorMap):
+        last_log = _log_l_ref(a_k, b_k, delta_last)
+        out_log = _log_l_ref(alpha, beta, delta_out)
+    else:
+        last_log = _log_l_dec(a_k, b_k, f.last_len, delta_last)
+        out_log = _log_l_dec(alpha, beta, r_out, delta_out)
+    total = f.body + jnp.where(entered_last, last_log, 0.0)
+    total = total + jnp.where(out_used, out_log, 0.0)
+    result = jnp.where(kind == SUB, _log1mexp(total), total)
+    return jnp.where((kind == HIT) | (kind == SUB) | (kind == SUP), result, -jnp.inf)
+
+
+def trace_lengths(rays: RayBatch):
+    """Length each ray is traced to: SUB to ``r_min``, SUP to ``r_max``, HIT to its range."""
+    return jnp.where(
+        rays.kind == SUB, rays.r_min, jnp.where(rays.kind == SUP, rays.r_max, rays.ranges)
+    )
+
+
 @functools.partial(jax.jit, static_argnames=("max_cells",))
 def _log_likelihood(posterior_map, rays: RayBatch, max_cells: int):
     spec = posterior_map.spec
     dtype = jnp.result_type(rays.origins.dtype, spec.origin.dtype, posterior_map.a.dtype)
-    kind = rays.kind
-    is_hit = kind == HIT
-    # SUB rays are traced up to r_min, SUP rays up to r_max, HIT rays to their range.
-    ranges = jnp.where(kind == SUB, rays.r_min, rays.ranges).astype(dtype)
-    traced = RayBatch(
-        origins=rays.origins.astype(dtype),
-        directions=rays.directions.astype(dtype),
-        ranges=ranges,
-        kind=kind,
-        r_min=rays.r_min,
-        r_max=rays.r_max,
-    )
-    trace_len = traced.trace_lengths()
-    tr = traverse_rays(spec, traced, max_cells=max_cells)
-    eps = jnp.finfo(dtype).eps
-    tol = 32 * eps * (tr.t_end + spec.resolution)
-    any_valid = jnp.any(tr.valid, axis=-1)
-    ends_inside = any_valid & (tr.t_end >= trace_len - tol)
-    delta: Bool[Array, "*batch k"] = tr.valid & tr.is_last & (is_hit & ends_inside)[..., None]
-    entered = tr.valid & ((tr.lengths > 0) | delta)
-
-    r_out = jnp.maximum(trace_len - (tr.t_end - tr.t_start), 0.0)
-    delta_out = is_hit & ~ends_inside
-    out_used = (r_out > tol) | delta_out
-
-    a_c = _gather(posterior_map.a, tr.cells)
-    b_c = _gather(posterior_map.b, tr.cells)
-    alpha, beta = posterior_map.alpha, posterior_map.beta
-    if isinstance(posterior_map, BetaPosteriorMap):
-        cell_log = _log_l_ref(a_c, b_c, delta)
-        out_log = _log_l_ref(alpha, beta, delta_out)
-    else:
-        cell_log = _log_l_dec(a_c, b_c, tr.lengths, delta)
-        out_log = _log_l_dec(alpha, beta, r_out, delta_out)
-    total = jnp.sum(jnp.where(entered, cell_log, 0.0), axis=-1)
-    total = total + jnp.where(out_used, out_log, 0.0)
-    result = jnp.where(kind == SUB, _log1mexp(total), total)
+    flat = rays.flatten()
+    o, d = flat.origins.astype(dtype), flat.directions.astype(dtype)
+    trace_len = trace_lengths(flat).astype(dtype)
+    tr = jax.vmap(lambda o_, d_, n_: traverse(spec, o_, d_, n_, max_cells))(o, d, trace_len)
+    f = fold_traversal(tr, term(posterior_map))
+    result = finish(posterior_map, f, o, d, trace_len, flat.kind)
     result = eqx.error_if(
-        result, ~tr.complete, "max_cells is too small: a ray was truncated by traverse_rays"
+        result, ~f.complete, "max_cells is too small: a ray was truncated by traverse_rays"
     )
-    return jnp.where((kind == HIT) | (kind == SUB) | (kind == SUP), result, -jnp.inf)
+    return result.reshape(rays.shape)
 
 
 # --------------------------------------------------------------------------------------

@@ -8,6 +8,8 @@
   analogue (implemented in :mod:`lidarjax.maps`).
 - :func:`log_likelihood_at_poses` / :func:`ray_log_likelihoods_at_poses`: one 2-D scan at
   many poses.
+- :func:`batch_log_likelihood`: any of the grid models above, forward only, with work
+  proportional to the cells the rays visit (particle filters).
 """
 
 from ..maps import posterior_log_likelihood as posterior_log_likelihood
@@ -15,6 +17,7 @@ from ._common import log_likelihood_at_poses as log_likelihood_at_poses
 from ._common import ray_log_likelihoods_at_poses as ray_log_likelihoods_at_poses
 from ._decay_rate import log_likelihood as decay_rate_log_likelihood
 from ._endpoint import log_likelihood as endpoint_log_likelihood
+from ._fast import batch_log_likelihood as batch_log_likelihood
 from ._reflection import log_likelihood as reflection_log_likelihood
 
 __all__ = [
@@ -24,4 +27,5 @@ __all__ = [
     "posterior_log_likelihood",
     "log_likelihood_at_poses",
     "ray_log_likelihoods_at_poses",
+    "batch_log_likelihood",
 ]

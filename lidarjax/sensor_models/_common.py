@@ -6,7 +6,6 @@ from __future__ import annotations
 import functools
 import math
 from collections.abc import Callable
-from typing import NamedTuple
 
 import equinox as eqx
 import jax
@@ -16,7 +15,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from ..rays import HIT, SUB, RayBatch, from_scan, is_concrete
-from ..raytrace import GridSpec, Traversal, max_cells_for, traverse
+from ..raytrace import GridSpec, fold_traversal, max_cells_for, traverse
 
 _LOG2 = math.log(2.0)
 
@@ -81,51 +80,27 @@ def trace_lengths(rays: RayBatch) -> Float[Array, "*batch"]:
     )
 
 
-class RaySummary(NamedTuple):
-    """What the grid sensor models need from one ray traced to length ``L``."""
-
-    tr: Traversal
-    last_cell: Int[Array, " d"]  # last in-grid cell (reflecting cell if `inside`)
-    last_len: Float[Array, ""]  # length (m) travelled in last_cell
-    inside: Bool[Array, ""]  # the point at L lies in the grid (in last_cell)
-    grid_len: Float[Array, ""]  # length (m) travelled inside the grid
-    out_len: Float[Array, ""]  # L - grid_len: length (m) travelled outside the grid
-
-
-def summarize(spec: GridSpec, origin, direction, length, max_cells: int) -> RaySummary:
-    """Traverse one ray and reduce the traversal to :class:`RaySummary`.
-
-    The ray's end point counts as inside the grid when the clipped ray ends at ``length``
-    (``t_end >= length``) and visits at least one cell; then the last visited cell is the
-    cell containing the end point (approached from the ray's side), as in
-    :func:`lidarjax.raytrace.accumulate`.
-    """
-    tr = traverse(spec, origin, direction, length, max_cells)
-    last = tr.is_last & tr.valid
-    last_cell = jnp.sum(jnp.where(last[:, None], tr.cells, 0), axis=0)
-    last_len = jnp.sum(jnp.where(last, tr.lengths, 0.0))
-    grid_len = jnp.sum(jnp.where(tr.valid, tr.lengths, 0.0))
-    inside = jnp.any(tr.valid) & (tr.t_end >= length)
-    out_len = jnp.maximum(length - grid_len, 0.0)
-    return RaySummary(tr, last_cell, last_len, inside, grid_len, out_len)
-
-
 def gather(values: Array, cells: Int[Array, "... d"]) -> Array:
     """``values[cells]`` for integer index vectors ``cells`` (clipped into the grid)."""
     idx = tuple(jnp.clip(cells[..., k], 0, values.shape[k] - 1) for k in range(values.ndim))
     return values[idx]
 
 
-@functools.partial(jax.jit, static_argnames=("one_ray", "max_cells"))
-def map_over_rays(one_ray: Callable, m, rays: RayBatch, max_cells: int) -> Array:
-    """``one_ray(m, origin, direction, length, kind, max_cells) -> (value, complete)``
-    vmapped over a ray batch (traced to :func:`trace_lengths`), reshaped to ``[*batch]``,
-    with a run-time check that no traversal ran out of its budget."""
+@functools.partial(jax.jit, static_argnames=("term", "finish", "max_cells"))
+def map_over_rays(term: Callable, finish: Callable, m, rays: RayBatch, max_cells: int) -> Array:
+    """Differentiable per-ray evaluation of a grid model given as ``term(m)`` (the per-cell
+    summand, see :func:`~lidarjax.raytrace.fold_traversal`) and ``finish(m, fold, origins,
+    directions, lengths, kind)``: each ray is traversed with a fixed ``max_cells`` budget
+    (``lax.scan``) to :func:`trace_lengths`; a run-time check fails if any ray was
+    truncated. Returns ``[*batch]``."""
     flat = rays.flatten()
-    out, complete = jax.vmap(functools.partial(one_ray, m, max_cells=max_cells))(
-        flat.origins, flat.directions, trace_lengths(flat), flat.kind
+    lengths = trace_lengths(flat)
+    tr = jax.vmap(lambda o, d, n: traverse(m.spec, o, d, n, max_cells))(
+        flat.origins, flat.directions, lengths
     )
-    return check_complete(out, complete).reshape(rays.shape)
+    fold = fold_traversal(tr, term(m))
+    out = finish(m, fold, flat.origins, flat.directions, lengths, flat.kind)
+    return check_complete(out, fold.complete).reshape(rays.shape)
 
 
 def check_complete(out: Array, complete: Bool[Array, "*batch"]) -> Array:

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from ..maps._grid import DecayRateMap
 from ..rays import HIT, SUB, RayBatch
+from ..raytrace import RayFold
 from ._common import (
     check_model_inputs,
     default_max_cells,
@@ -15,24 +17,33 @@ from ._common import (
     map_over_rays,
     mul0,
     safe_log,
-    summarize,
     trace_lengths,
 )
 
 
-def _one_ray(m: DecayRateMap, origin, direction, length, kind, max_cells: int):
-    s = summarize(m.spec, origin, direction, length, max_cells)
-    lam = gather(m.rates, s.tr.cells)  # [max_cells]
+def _term(rates, cells, lengths):
+    return gather(rates, cells) * lengths
+
+
+def term(m: DecayRateMap):
+    """Per-cell summand ``lambda_i d_i`` of the optical depth."""
+    return jax.tree_util.Partial(_term, m.rates)
+
+
+def finish(m: DecayRateMap, f: RayFold, origin, direction, length, kind):
+    """Log-likelihood of rays from their :class:`~lidarjax.raytrace.RayFold` (any batch)."""
+    inside = f.any_valid & (f.t_end >= length)
+    out_len = jnp.maximum(length - f.grid_len, 0.0)
+    lam_last = gather(m.rates, f.last_cell)
     # Optical depth Lambda(L) = int_0^L lambda(x(r)) dr: cells inside the grid plus the
     # outside parts at the outside rate (0 * inf := 0 for an infinite SUP ray).
-    depth = jnp.sum(jnp.where(s.tr.valid, lam * s.tr.lengths, 0.0))
-    depth = depth + mul0(m.outside_rate, s.out_len)
-    lam_k = jnp.where(s.inside, gather(m.rates, s.last_cell), m.outside_rate)
+    depth = f.body + jnp.where(f.any_valid, lam_last * f.last_len, 0.0)
+    depth = depth + mul0(m.outside_rate, out_len)
+    lam_k = jnp.where(inside, lam_last, m.outside_rate)
     hit = safe_log(lam_k) - depth  # Eq. (7.13)
     sub = log1mexp(depth)  # Eq. (7.16): P(sub) = 1 - N(r_min)
     sup = -depth  # Eq. (7.16): P(sup) = N(r_max)
-    out = jnp.where(kind == HIT, hit, jnp.where(kind == SUB, sub, sup))
-    return out, s.tr.complete
+    return jnp.where(kind == HIT, hit, jnp.where(kind == SUB, sub, sup))
 
 
 def log_likelihood(
@@ -72,4 +83,4 @@ def log_likelihood(
     """
     check_model_inputs(map, DecayRateMap, rays)
     mc = default_max_cells(map.spec, trace_lengths(rays), max_cells)
-    return map_over_rays(_one_ray, map, rays, max_cells=mc)
+    return map_over_rays(term, finish, map, rays, max_cells=mc)

@@ -11,6 +11,7 @@ from jaxtyping import Array, Float
 
 from ..maps._grid import EndpointMap
 from ..rays import HIT, RayBatch
+from ..raytrace import RayFold, fold_traversal, traverse
 from ._common import (
     check_complete,
     check_model_inputs,
@@ -18,42 +19,58 @@ from ._common import (
     gather,
     mul0,
     safe_log,
-    summarize,
 )
 
 
-def _one_ray(m: EndpointMap, field, origin, direction, rng, kind, r_min, r_max, max_cells):
-    spec = m.spec
-    norm = jnp.sqrt(jnp.sum(direction * direction))
-    unit = direction / jnp.where(norm > 0, norm, 1.0)
+def _term(field, z_hit, rand, cells, lengths):
+    return (z_hit * gather(field, cells) + rand) * lengths
+
+
+def prepare(m: EndpointMap, rays: RayBatch):
+    """Flattened inputs of the endpoint model: the hit field, the uniform term, and the
+    rays from ``r_min`` to ``r_max`` (unit directions) whose traversal gives ``Z``."""
+    flat = rays.flatten()
+    field = m.hit_field()
+    r_min, r_max = flat.r_min, flat.r_max
     finite_max = jnp.isfinite(r_max)
     rand = jnp.where(finite_max, m.z_rand / jnp.where(finite_max, r_max, 1.0), 0.0)
+    norm = jnp.sqrt(jnp.sum(flat.directions**2, axis=-1, keepdims=True))
+    unit = flat.directions / jnp.where(norm > 0, norm, 1.0)
+    span = jnp.broadcast_to(r_max - r_min, flat.ranges.shape)
+    starts = flat.origins + r_min * unit
+    return flat, field, rand, unit, starts, span
+
+
+def term(m: EndpointMap, field, rand):
+    """Per-cell summand ``f_i d_i`` of the normaliser ``Z``."""
+    return jax.tree_util.Partial(_term, field, m.z_hit, rand)
+
+
+def finish(m: EndpointMap, field, rand, f: RayFold, flat: RayBatch, unit, span):
+    """Log-likelihood of flattened rays from the :class:`RayFold` of their ``Z`` rays."""
+    spec = m.spec
     # Normaliser Z = int_{r_min}^{r_max} f(x(r)) dr of the cell-wise constant field: exact
     # sum over the traversed cells of f_i * d_i plus the uniform term outside the grid.
-    span = r_max - r_min
-    s = summarize(spec, origin + r_min * unit, unit, span, max_cells)
-    f_cells = m.z_hit * gather(field, s.tr.cells) + rand
-    z = jnp.sum(jnp.where(s.tr.valid, f_cells * s.tr.lengths, 0.0)) + mul0(rand, s.out_len)
+    f_last = m.z_hit * gather(field, f.last_cell) + rand
+    out_len = jnp.maximum(span - f.grid_len, 0.0)
+    z = f.body + jnp.where(f.any_valid, f_last * f.last_len, 0.0) + mul0(rand, out_len)
     # Field at the end point (the cell containing it; outside the grid only the uniform term).
-    cell = spec.cell_of(origin + rng * unit)
+    cell = spec.cell_of(flat.origins + flat.ranges[..., None] * unit)
     inside = spec.contains(cell)
     f_end = jnp.where(inside, m.z_hit * gather(field, cell), 0.0) + rand
     ok = (z > 0) & (f_end > 0)
     log_ratio = jnp.log(jnp.where(ok, f_end, 1.0)) - jnp.log(jnp.where(ok, z, 1.0))
     hit = jnp.where(ok, safe_log(1.0 - m.p_out) + log_ratio, -jnp.inf)
-    out = jnp.where(kind == HIT, hit, safe_log(m.p_out))
-    return out, s.tr.complete
+    return jnp.where(flat.kind == HIT, hit, safe_log(m.p_out))
 
 
 @functools.partial(jax.jit, static_argnames=("max_cells",))
 def _log_likelihood(m: EndpointMap, rays: RayBatch, max_cells: int):
-    flat = rays.flatten()
-    field = m.hit_field()
-    fn = functools.partial(
-        _one_ray, m, field, r_min=flat.r_min, r_max=flat.r_max, max_cells=max_cells
-    )
-    out, complete = jax.vmap(fn)(flat.origins, flat.directions, flat.ranges, flat.kind)
-    return check_complete(out, complete).reshape(rays.shape)
+    flat, field, rand, unit, starts, span = prepare(m, rays)
+    tr = jax.vmap(lambda o, d, n: traverse(m.spec, o, d, n, max_cells))(starts, unit, span)
+    f = fold_traversal(tr, term(m, field, rand))
+    out = finish(m, field, rand, f, flat, unit, span)
+    return check_complete(out, f.complete).reshape(rays.shape)
 
 
 def log_likelihood(

@@ -50,10 +50,15 @@ def effective_sample_size(log_weights: Float[Array, " n"]) -> Float[Array, ""]:
 
 
 def _inverse_cdf(log_weights, positions):
+    """Ancestor of each position in ``[0, 1)`` under the weights' CDF. A position that
+    rounds up to the total (float32) maps to the last particle with positive weight, so a
+    zero-weight particle is never chosen."""
     w = jnp.exp(normalize_log_weights(log_weights))
+    n = w.shape[0]
     cdf = jnp.cumsum(w)
     idx = jnp.searchsorted(cdf, positions * cdf[-1], side="right")
-    return jnp.clip(idx, 0, w.shape[0] - 1).astype(jnp.int32)
+    last_positive = jnp.max(jnp.where(w > 0, jnp.arange(n), 0))
+    return jnp.clip(idx, 0, last_positive).astype(jnp.int32)
 
 
 def systematic_resample(key: PRNGKeyArray, log_weights: Float[Array, " n"]) -> Int[Array, " n"]:
@@ -72,11 +77,11 @@ def stratified_resample(key: PRNGKeyArray, log_weights: Float[Array, " n"]) -> I
 
 
 def multinomial_resample(key: PRNGKeyArray, log_weights: Float[Array, " n"]) -> Int[Array, " n"]:
-    """Multinomial resampling: ``n`` independent draws from the weights."""
+    """Multinomial resampling: ``n`` independent draws from the weights (as the inverse
+    CDF of ``n`` sorted uniforms, ``O(n log n)`` time and ``O(n)`` memory)."""
     n = log_weights.shape[0]
-    return jax.random.categorical(key, normalize_log_weights(log_weights), shape=(n,)).astype(
-        jnp.int32
-    )
+    u = jnp.sort(jax.random.uniform(key, (n,), dtype=log_weights.dtype))
+    return _inverse_cdf(log_weights, u)
 
 
 RESAMPLERS: dict[str, Callable] = {

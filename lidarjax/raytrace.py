@@ -385,50 +385,15 @@ def fold_traversal(tr: Traversal, term) -> RayFold:
     )
 
 
-@eqx.filter_jit
-def fold_rays(
-    spec: GridSpec,
-    origins: Float[Array, "n d"],
-    directions: Float[Array, "n d"],
-    lengths: Float[Array, " n"],
-    term,
-    chunk_size: int = 2048,
-) -> RayFold:
-    """:func:`fold_traversal` of many rays without a per-ray cell budget (forward only).
-
-    Rays are sorted by expected cell count and walked in chunks of ``chunk_size``, each
-    chunk in a ``lax.while_loop`` that stops when its longest ray is done, so the work is
-    close to the number of cells actually visited (unlike ``traverse``'s fixed budget) and
-    no ray is truncated. The walk is the same as :func:`traverse`'s (same cells, same
-    lengths); only the summation order of ``body`` differs. Not reverse-differentiable
-    (use :func:`fold_traversal` for gradients).
-
-    Args:
-        spec: the grid.
-        origins: ``[n d]`` ray starts (m).
-        directions: ``[n d]`` directions (normalised internally).
-        lengths: ``[n]`` lengths (m), ``inf`` traces to the grid border.
-        term: ``term(cells [c d] int32, lengths [c]) -> [c]``, elementwise. A plain
-            function is compiled in as a constant; pass a :class:`jax.tree_util.Partial` or
-            an ``equinox.Module`` to keep the arrays it closes over traced.
-        chunk_size: rays walked together.
-
-    Returns:
-        A :class:`RayFold` with fields of leading shape ``[n]`` (``complete`` all True).
-    """
-    n, dim = origins.shape
+def _fold_sorted(spec: GridSpec, origins, directions, lengths, term, chunk: int):
+    """Walk rays (already sorted by work) in chunks; per-ray fold outputs in input order."""
+    n = origins.shape[0]
     dtype = jnp.result_type(origins.dtype, spec.origin.dtype)
-    chunk = max(1, min(chunk_size, n))
-    unit_sum = jnp.sum(jnp.abs(directions), axis=-1) / jnp.maximum(
-        jnp.sqrt(jnp.sum(directions * directions, axis=-1)), jnp.finfo(dtype).tiny
-    )
-    work = unit_sum * jnp.minimum(lengths, _box_diagonal(spec))
-    order = jnp.argsort(work)
+    chunk = max(1, min(chunk, n))
     n_chunks = -(-n // chunk)
     pad = n_chunks * chunk - n
 
     def prep(x):
-        x = x[order]
         widths = [(0, pad)] + [(0, 0)] * (x.ndim - 1)
         return jnp.pad(x, widths).reshape(n_chunks, chunk, *x.shape[1:])
 
@@ -458,9 +423,71 @@ def fold_rays(
         return acc, last_cell, last_len, grid_len, any_valid, ray.t_start, ray.t_end
 
     outs = jax.lax.map(one_chunk, (prep(origins), prep(directions), prep(lengths)))
-    inv = jnp.argsort(order)
-    outs = [x.reshape(n_chunks * chunk, *x.shape[2:])[:n][inv] for x in outs]
-    acc, last_cell, last_len, grid_len, any_valid, t_start, t_end = outs
+    return [x.reshape(n_chunks * chunk, *x.shape[2:])[:n] for x in outs]
+
+
+@eqx.filter_jit
+def fold_rays(
+    spec: GridSpec,
+    origins: Float[Array, "n d"],
+    directions: Float[Array, "n d"],
+    lengths: Float[Array, " n"],
+    term,
+    chunk_size: int = 2048,
+    streams: int = 2,
+) -> RayFold:
+    """:func:`fold_traversal` of many rays without a per-ray cell budget (forward only).
+
+    Rays are sorted by expected cell count and walked in chunks of ``chunk_size``, each
+    chunk in a ``lax.while_loop`` that stops when its longest ray is done, so the work is
+    close to the number of cells actually visited (unlike ``traverse``'s fixed budget) and
+    no ray is truncated. The sorted rays are dealt round-robin to ``streams`` independent
+    chunk sequences, which XLA's CPU runtime may execute concurrently (on 2 cores, 2
+    streams were about 20 % faster than 1 under load). The walk is the same as
+    :func:`traverse`'s (same cells, same lengths); only the summation order of ``body``
+    differs. Not reverse-differentiable (use :func:`fold_traversal` for gradients).
+
+    Args:
+        spec: the grid.
+        origins: ``[n d]`` ray starts (m).
+        directions: ``[n d]`` directions (normalised internally).
+        lengths: ``[n]`` lengths (m), ``inf`` traces to the grid border.
+        term: ``term(cells [c d] int32, lengths [c]) -> [c]``, elementwise. A plain
+            function is compiled in as a constant; pass a :class:`jax.tree_util.Partial` or
+            an ``equinox.Module`` to keep the arrays it closes over traced.
+        chunk_size: rays walked together (static, >= 1).
+        streams: independent chunk sequences (static, >= 1).
+
+    Returns:
+        A :class:`RayFold` with fields of leading shape ``[n]`` (``complete`` all True).
+    """
+    if not isinstance(chunk_size, int) or chunk_size <= 0:
+        raise ValueError(f"chunk_size must be a positive int, got {chunk_size!r}")
+    if not isinstance(streams, int) or streams <= 0:
+        raise ValueError(f"streams must be a positive int, got {streams!r}")
+    n, _ = origins.shape
+    if n == 0:
+        raise ValueError("origins is empty: no rays to fold")
+    dtype = jnp.result_type(origins.dtype, spec.origin.dtype)
+    unit_sum = jnp.sum(jnp.abs(directions), axis=-1) / jnp.maximum(
+        jnp.sqrt(jnp.sum(directions * directions, axis=-1)), jnp.finfo(dtype).tiny
+    )
+    work = unit_sum * jnp.minimum(lengths, _box_diagonal(spec))
+    order = jnp.argsort(work)
+    streams = min(streams, n)
+    parts = [order[p::streams] for p in range(streams)]
+    results = [
+        _fold_sorted(spec, origins[sel], directions[sel], lengths[sel], term, chunk_size)
+        for sel in parts
+    ]
+    fields = []
+    for k in range(len(results[0])):
+        first = results[0][k]
+        out = jnp.zeros((n, *first.shape[1:]), first.dtype)
+        for sel, res in zip(parts, results):
+            out = out.at[sel].set(res[k])
+        fields.append(out)
+    acc, last_cell, last_len, grid_len, any_valid, t_start, t_end = fields
     return RayFold(
         body=acc,
         last_cell=last_cell,

@@ -303,6 +303,30 @@ def test_fold_rays_matches_fold_traversal(dim, chunk_size):
     np.testing.assert_array_equal(np.asarray(got.grid_len)[~valid], 0.0)
 
 
+@pytest.mark.parametrize("streams", [1, 3])
+def test_fold_rays_streams_do_not_change_results(streams):
+    spec, o, d, r = _geometry(2, seed=5, n_random=30)
+    values = jnp.asarray(np.random.default_rng(6).uniform(0.1, 2.0, spec.shape))
+    term = jax.tree_util.Partial(_term_fn, values)
+    args = (spec, jnp.asarray(o), jnp.asarray(d), jnp.asarray(r), term)
+    ref = fold_rays(*args, chunk_size=4, streams=2)
+    got = fold_rays(*args, chunk_size=4, streams=streams)
+    for a, b in zip(jax.tree.leaves(ref), jax.tree.leaves(got)):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=TOL, atol=TOL)
+
+
+def test_fold_rays_bad_arguments():
+    spec, o, d, r = _geometry(2, seed=5, n_random=3)
+    term = jax.tree_util.Partial(_term_fn, jnp.ones(spec.shape))
+    args = (spec, jnp.asarray(o), jnp.asarray(d), jnp.asarray(r), term)
+    with pytest.raises(ValueError, match="chunk_size"):
+        fold_rays(*args, chunk_size=0)
+    with pytest.raises(ValueError, match="streams"):
+        fold_rays(*args, streams=0)
+    with pytest.raises(ValueError, match="empty"):
+        fold_rays(spec, jnp.zeros((0, 2)), jnp.zeros((0, 2)), jnp.zeros(0), term)
+
+
 def test_fold_rays_closed_form():
     """Independent of traverse: a ray crossing the whole grid along x travels the grid
     width inside it, the diagonal from the grid corner the diagonal of 6 x 6 cells (corner

@@ -197,7 +197,8 @@ def evaluate_log(name: str, cfg: DictConfig, failures: bool = False) -> dict:
     r_min, r_max = float(cfg.r_min_m), float(log.usable_range_m)
     models, spec = build_maps(log, cfg, r_min, r_max)
     odd = np.arange(1, log.n_scans, 2)[: int(cfg.filter.max_steps) + 1]
-    beams = np.arange(0, log.n_beams, int(cfg.filter.beam_stride))
+    beams = np.unique(np.round(np.linspace(0, log.n_beams - 1, int(cfg.filter.n_beams))))
+    beams = beams.astype(int)
     az = jnp.asarray(log.azimuths_rad[beams])
     z = np.array(log.ranges_m[odd[1:]][:, beams])
     key = jax.random.fold_in(jax.random.PRNGKey(int(cfg.seed)), zlib.crc32(name.encode()) >> 1)
@@ -333,9 +334,11 @@ def main(cfg: DictConfig) -> None:
         raise ValueError(f"models: unknown {sorted(unknown)}; choose from {sorted(NAMES)}")
     t0 = time.perf_counter()
     results, curves, gts = {}, {}, {}
-    jobs = [(n, False) for n in cfg.logs]
-    if cfg.robustness_log and cfg.robustness_log in cfg.logs:
-        jobs.append((cfg.robustness_log, True))
+    jobs = []
+    for n in cfg.logs:
+        jobs.append((n, False))
+        if n == cfg.robustness_log:
+            jobs.append((n, True))
     for name, failures in tqdm(jobs, desc="logs"):
         label = f"{name}*" if failures else name
         res, c, gt = evaluate_log(name, cfg, failures)
@@ -345,29 +348,36 @@ def main(cfg: DictConfig) -> None:
             + ", ".join(f"{m} {v['pos_err_m']:.3f} m" for m, v in res["models"].items())
             + f" ({res['seconds']:.0f} s)"
         )
+        write_outputs(out, cfg, models, results, curves, gts, time.perf_counter() - t0)
+    print(write_tables(results, models))
+
+
+def write_outputs(out: Path, cfg, models, results, curves, gts, runtime_s: float) -> None:
+    """results.json / results.md / figures for the logs done so far."""
     summary = {
         "config": OmegaConf.to_container(cfg, resolve=True),
         "logs": results,
-        "runtime_s": time.perf_counter() - t0,
+        "runtime_s": runtime_s,
         "jax_version": jax.__version__,
         "dtype": str(jnp.result_type(float)),
     }
     ch7 = [m for m in ("dec", "ref", "end") if m in models]
+    summary["mean_over_logs_pos_err_m"] = {
+        m: float(np.mean([r["models"][m]["pos_err_m"] for r in results.values()])) for m in models
+    }
     if ch7:
-        summary["mean_over_logs_pos_err_m"] = {
-            m: float(np.mean([r["models"][m]["pos_err_m"] for r in results.values()]))
-            for m in models
-        }
-        summary["decay_best_count"] = int(
-            sum(
-                min(ch7, key=lambda m: r["models"][m]["pos_err_m"]) == "dec"
-                for r in results.values()
+        summary["best_model_count"] = {
+            m: int(
+                sum(
+                    min(ch7, key=lambda k: r["models"][k]["pos_err_m"]) == m
+                    for r in results.values()
+                )
             )
-        )
+            for m in ch7
+        }
     (out / "results.json").write_text(json.dumps(summary, indent=2))
     (out / "results.md").write_text(write_tables(results, models))
     plot(curves, gts, out)
-    print(write_tables(results, models))
 
 
 if __name__ == "__main__":

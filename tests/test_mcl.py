@@ -78,6 +78,7 @@ def test_mcl_experiment_small(tmp_path):
         "filter.runs=2",
         "filter.particles=100",
         "filter.max_steps=12",
+        "filter.n_beams=15",
         "refine.every=6",
         "refine.blur_schedule_m=[0.15,0.0]",
         "refine.beam_stride=4",

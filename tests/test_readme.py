@@ -21,3 +21,9 @@ def test_readme_examples_run():
     assert ns["ll"].shape == (180,) and ns["ll_fmp"].shape == (180,)
     assert np.all(np.isfinite(np.asarray(ns["ll_fmp"])))
     assert ns["scores"].shape == (100,)
+    track, odd = np.asarray(ns["track"]), ns["odd"]
+    assert track.shape == (19, 3)
+    err = np.linalg.norm(track[:, :2] - ns["log"].poses[odd[1:], :2], axis=1)
+    assert err.mean() < 0.2, err
+    refined = np.asarray(ns["loc"].to_vector(ns["pose"]))
+    assert np.linalg.norm(refined[:2] - ns["log"].poses[odd[-1], :2]) < 0.1

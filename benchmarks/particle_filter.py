@@ -180,7 +180,7 @@ def main(argv=None) -> dict:
     per_count = {}
     for n in counts:
         key = jax.random.key(n)
-        state = init_gaussian(key, n, P[odd[START]], INIT_STD)
+        state = init_gaussian(n, P[odd[START]], INIT_STD, key=key)
         p0 = np.asarray(to_vector(state.particles), np.float64)
         k = START
         t0 = time.perf_counter()
@@ -252,12 +252,12 @@ def main(argv=None) -> dict:
     # ------------------------------------------------------------------ whole log
     n_run = 300
     n_steps = 20 if quick else controls.shape[0]
-    state0 = init_gaussian(jax.random.key(1), n_run, P[odd[0]], INIT_STD)
+    state0 = init_gaussian(n_run, P[odd[0]], INIT_STD, key=jax.random.key(1))
     c, m = jnp.asarray(controls[:n_steps]), jnp.asarray(zs[:n_steps])
     t0 = time.perf_counter()
     jax.block_until_ready(pf.run(state0, c, m))
     run_first = time.perf_counter() - t0
-    state0 = init_gaussian(jax.random.key(2), n_run, P[odd[0]], INIT_STD)
+    state0 = init_gaussian(n_run, P[odd[0]], INIT_STD, key=jax.random.key(2))
     t0 = time.perf_counter()
     _, infos = jax.block_until_ready(pf.run(state0, c, m))
     run_wall = time.perf_counter() - t0

@@ -99,7 +99,9 @@ def initial_states(key, start_pose: np.ndarray, cfg: DictConfig):
     for r in range(int(cfg.filter.runs)):
         k_off, k_init = jax.random.split(jax.random.fold_in(key, r))
         off = std * np.asarray(jax.random.normal(k_off, (3,)), np.float64)
-        states.append(loc.init_gaussian(k_init, int(cfg.filter.particles), start_pose + off, std))
+        states.append(
+            loc.init_gaussian(int(cfg.filter.particles), start_pose + off, std, key=k_init)
+        )
     return jax.tree.map(lambda *x: jnp.stack(x), *states)
 
 

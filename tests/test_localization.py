@@ -73,7 +73,7 @@ RESAMPLER_FNS = {
 
 def _offspring(fn, key, log_w, n_runs):
     n = log_w.shape[0]
-    idx = jax.vmap(fn, in_axes=(0, None))(jax.random.split(key, n_runs), log_w)
+    idx = jax.vmap(lambda k: fn(log_w, key=k))(jax.random.split(key, n_runs))
     assert idx.shape == (n_runs, n)
     idx = np.asarray(idx)
     assert idx.min() >= 0 and idx.max() < n
@@ -120,7 +120,7 @@ def test_systematic_zero_weight_last_particle_never_chosen_float32(key):
     u = jax.vmap(lambda k: jax.random.uniform(k, (), jnp.float32))(keys)
     picked = keys[np.flatnonzero(np.asarray(u) > 1 - 2.0**-13)]
     assert picked.shape[0] >= 1
-    idx = np.asarray(jax.vmap(systematic_resample, in_axes=(0, None))(picked, log_w))
+    idx = np.asarray(jax.vmap(lambda k: systematic_resample(log_w, key=k))(picked))
     assert not np.any(idx == n - 1)
 
 
@@ -363,7 +363,7 @@ def test_odometry_motion_model_se2_moments(key):
     std = 1.5 * (sigma + alpha @ np.abs(chi))
     np.testing.assert_allclose(np.asarray(model.std(jnp.asarray(chi))), std, rtol=1e-12)
     ident = jaxlie.SE2(jnp.tile(jaxlie.SE2.identity().parameters(), (n, 1)))
-    out = model(key, ident, jnp.asarray(chi))
+    out = model(ident, jnp.asarray(chi), key=key)
     xi = np.asarray(to_vector(ident.inverse() @ out))
     _check_gaussian_sample(xi, chi, std)
 
@@ -377,7 +377,7 @@ def test_odometry_motion_model_composes_on_the_right(key):
     model = OdometryMotionModel(sigma)
     x0 = np.array([2.0, -1.0, 2.5])
     start = from_vector(np.tile(x0, (n, 1)))
-    v = np.asarray(to_vector(model(key, start, jnp.asarray(chi))))
+    v = np.asarray(to_vector(model(start, jnp.asarray(chi), key=key)))
     c, s = np.cos(x0[2]), np.sin(x0[2])
     mean_xy = x0[:2] + np.array([c * chi[0] - s * chi[1], s * chi[0] + c * chi[1]])
     # the world-frame xy noise is a rotation of independent N(0, 0.03^2): std 0.03 per axis
@@ -392,12 +392,12 @@ def test_odometry_motion_model_se3(key):
     model = OdometryMotionModel(sigma, group=jaxlie.SE3)
     # from the identity the increments are recovered exactly
     ident = jaxlie.SE3(jnp.tile(jaxlie.SE3.identity().parameters(), (n, 1)))
-    xi = np.asarray(to_vector(model(key, ident, jnp.asarray(chi))))
+    xi = np.asarray(to_vector(model(ident, jnp.asarray(chi), key=key)))
     _check_gaussian_sample(xi, chi, sigma)
     # from a rotated start the mean translation is t0 + R0 chi_t
     x0 = np.array([1.0, 2.0, 0.5, 0.2, -0.3, 1.1])
     start = from_vector(np.tile(x0, (n, 1)), jaxlie.SE3)
-    out = model(jax.random.fold_in(key, 1), start, jnp.asarray(chi))
+    out = model(start, jnp.asarray(chi), key=jax.random.fold_in(key, 1))
     r0 = np.asarray(from_vector(x0, jaxlie.SE3).rotation().as_matrix())
     mean_t = x0[:3] + r0 @ chi[:3]
     # xi_t noise (std <= 0.02 per axis) rotated: per-axis std <= 0.02 (+ rotation noise
@@ -441,13 +441,13 @@ def test_init_gaussian_moments(key):
     n = 20000
     mean = np.array([1.0, -2.0, 0.5])
     std = np.array([0.3, 0.1, 0.2])
-    state = init_gaussian(key, n, mean, std)
+    state = init_gaussian(n, mean, std, key=key)
     _check_uniform_weights(state, n)
     _check_gaussian_sample(np.asarray(to_vector(state.particles)), mean, std)
     # SE3, and the state's key is a fresh one
     mean6 = np.array([1.0, 2.0, 3.0, 0.1, -0.2, 0.3])
     std6 = np.array([0.5, 0.4, 0.3, 0.05, 0.04, 0.03])
-    s3 = init_gaussian(key, n, mean6, std6, jaxlie.SE3)
+    s3 = init_gaussian(n, mean6, std6, jaxlie.SE3, key=key)
     _check_gaussian_sample(np.asarray(to_vector(s3.particles)), mean6, std6)
     assert not np.array_equal(
         np.asarray(jax.random.key_data(s3.key)), np.asarray(jax.random.key_data(key))
@@ -457,24 +457,24 @@ def test_init_gaussian_moments(key):
 def test_init_gaussian_bad_input(key):
     for bad_n in (0, -1, 2.5, "3"):
         with pytest.raises(ValueError, match="n must"):
-            init_gaussian(key, bad_n, np.zeros(3), np.ones(3))
+            init_gaussian(bad_n, np.zeros(3), np.ones(3), key=key)
     with pytest.raises(ValueError, match="mean"):
-        init_gaussian(key, 5, np.zeros(2), np.ones(3))
+        init_gaussian(5, np.zeros(2), np.ones(3), key=key)
     with pytest.raises(ValueError, match="std"):
-        init_gaussian(key, 5, np.zeros(3), np.ones(6))
+        init_gaussian(5, np.zeros(3), np.ones(6), key=key)
     with pytest.raises(ValueError, match="std"):
-        init_gaussian(key, 5, np.zeros(3), np.array([1.0, -1.0, 1.0]))
+        init_gaussian(5, np.zeros(3), np.array([1.0, -1.0, 1.0]), key=key)
     with pytest.raises(ValueError, match="mean"):
-        init_gaussian(key, 5, np.array([0.0, np.nan, 0.0]), np.ones(3))
+        init_gaussian(5, np.array([0.0, np.nan, 0.0]), np.ones(3), key=key)
     with pytest.raises(ValueError, match="mean"):
-        init_gaussian(key, 5, np.zeros(3), np.ones(3), jaxlie.SE3)
+        init_gaussian(5, np.zeros(3), np.ones(3), jaxlie.SE3, key=key)
 
 
 def test_init_uniform_disc(key):
     n = 20000
     c = np.array([3.0, -1.0])
     radius, lo, hi = 2.5, -0.1, 0.3
-    state = init_uniform_disc(key, n, c, radius, (lo, hi))
+    state = init_uniform_disc(n, c, radius, (lo, hi), key=key)
     _check_uniform_weights(state, n)
     v = np.asarray(to_vector(state.particles))
     d = np.linalg.norm(v[:, :2] - c, axis=1)
@@ -487,7 +487,7 @@ def test_init_uniform_disc(key):
     np.testing.assert_array_less(np.abs(v[:, :2].mean(0) - c), Z * (radius / 2) / np.sqrt(n))
     assert abs(v[:, 2].mean() - (lo + hi) / 2) < Z * (hi - lo) / np.sqrt(12 * n)
     # degenerate disc and interval
-    s0 = init_uniform_disc(key, 10, c, 0.0, (0.2, 0.2))
+    s0 = init_uniform_disc(10, c, 0.0, (0.2, 0.2), key=key)
     np.testing.assert_allclose(
         np.asarray(to_vector(s0.particles)), np.tile([3.0, -1.0, 0.2], (10, 1)), atol=1e-12
     )
@@ -495,19 +495,19 @@ def test_init_uniform_disc(key):
 
 def test_init_uniform_disc_bad_input(key):
     with pytest.raises(ValueError, match="center_xy"):
-        init_uniform_disc(key, 5, np.zeros(3), 1.0, (0.0, 1.0))
+        init_uniform_disc(5, np.zeros(3), 1.0, (0.0, 1.0), key=key)
     with pytest.raises(ValueError, match="center_xy"):
-        init_uniform_disc(key, 5, np.array([0.0, np.inf]), 1.0, (0.0, 1.0))
+        init_uniform_disc(5, np.array([0.0, np.inf]), 1.0, (0.0, 1.0), key=key)
     with pytest.raises(ValueError, match="radius_m"):
-        init_uniform_disc(key, 5, np.zeros(2), -1.0, (0.0, 1.0))
+        init_uniform_disc(5, np.zeros(2), -1.0, (0.0, 1.0), key=key)
     with pytest.raises(ValueError, match="radius_m"):
-        init_uniform_disc(key, 5, np.zeros(2), np.nan, (0.0, 1.0))
+        init_uniform_disc(5, np.zeros(2), np.nan, (0.0, 1.0), key=key)
     with pytest.raises(ValueError, match="heading_rad"):
-        init_uniform_disc(key, 5, np.zeros(2), 1.0, (1.0, 0.0))
+        init_uniform_disc(5, np.zeros(2), 1.0, (1.0, 0.0), key=key)
     with pytest.raises(ValueError, match="heading_rad"):
-        init_uniform_disc(key, 5, np.zeros(2), 1.0, (0.0, np.inf))
+        init_uniform_disc(5, np.zeros(2), 1.0, (0.0, np.inf), key=key)
     with pytest.raises(ValueError, match="n must"):
-        init_uniform_disc(key, 0, np.zeros(2), 1.0, (0.0, 1.0))
+        init_uniform_disc(0, np.zeros(2), 1.0, (0.0, 1.0), key=key)
 
 
 def test_init_global(key):
@@ -515,7 +515,7 @@ def test_init_global(key):
     rng = np.random.default_rng(10)
     free = rng.uniform(size=spec.shape) < 0.4
     n = 12000
-    state = init_global(key, n, spec, jnp.asarray(free))
+    state = init_global(n, spec, jnp.asarray(free), key=key)
     _check_uniform_weights(state, n)
     v = np.asarray(to_vector(state.particles))
     cell = np.floor((v[:, :2] - [-1.0, 2.0]) / 0.5).astype(int)
@@ -537,16 +537,16 @@ def test_init_global(key):
 def test_init_global_bad_input(key):
     spec = GridSpec(np.array([0.0, 0.0]), 0.5, (6, 5))
     with pytest.raises(ValueError, match="free"):
-        init_global(key, 5, spec, jnp.ones((5, 6), bool))
+        init_global(5, spec, jnp.ones((5, 6), bool), key=key)
     with pytest.raises(ValueError, match="free"):
-        init_global(key, 5, spec, jnp.ones((6, 5)))
+        init_global(5, spec, jnp.ones((6, 5)), key=key)
     with pytest.raises(ValueError, match="free"):
-        init_global(key, 5, spec, jnp.zeros((6, 5), bool))
+        init_global(5, spec, jnp.zeros((6, 5), bool), key=key)
     spec3 = GridSpec(np.zeros(3), 0.5, (2, 2, 2))
     with pytest.raises(ValueError, match="free"):
-        init_global(key, 5, spec3, jnp.ones((2, 2, 2), bool))
+        init_global(5, spec3, jnp.ones((2, 2, 2), bool), key=key)
     with pytest.raises(ValueError, match="n must"):
-        init_global(key, 0, spec, jnp.ones((6, 5), bool))
+        init_global(0, spec, jnp.ones((6, 5), bool), key=key)
 
 
 # --------------------------------------------------------------------------------------
@@ -575,7 +575,7 @@ def _toy(key, n=N_TOY, resampler="systematic", best_fraction=0.1):
         resampler=resampler,
         best_fraction=best_fraction,
     )
-    state = init_gaussian(key, n, [0.0, 0.0, 0.0], [SIG_0, SIG_0, 0.0])
+    state = init_gaussian(n, [0.0, 0.0, 0.0], [SIG_0, SIG_0, 0.0], key=key)
     return pf, state
 
 

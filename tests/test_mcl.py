@@ -47,7 +47,7 @@ def test_mcl_localizes_real_segment(intel, model):
     )
     pf = loc.ParticleFilter(motion, scan_model)
     start = log.poses[odd[0]] + np.array([0.15, -0.1, 0.05])
-    state = loc.init_gaussian(jax.random.key(1), 300, start, [0.2, 0.2, 0.05])
+    state = loc.init_gaussian(300, start, [0.2, 0.2, 0.05], key=jax.random.key(1))
     controls = loc.relative_motion(jnp.asarray(log.odometry[odd]))
     _, info = pf.run(state, controls, jnp.asarray(log.ranges_m[odd[1:]][:, beams]))
     est = np.asarray(loc.to_vector(info.estimate))

@@ -61,7 +61,7 @@ def _inverse_cdf(log_weights, positions):
     return jnp.clip(idx, 0, last_positive).astype(jnp.int32)
 
 
-def systematic_resample(key: PRNGKeyArray, log_weights: Float[Array, " n"]) -> Int[Array, " n"]:
+def systematic_resample(log_weights: Float[Array, " n"], *, key: PRNGKeyArray) -> Int[Array, " n"]:
     """Low-variance (systematic) resampling, Thrun et al. Table 4.4: one uniform offset
     ``u ~ U[0, 1/n)`` and the comb ``u + i/n``. Returns ``[n]`` ancestor indices."""
     n = log_weights.shape[0]
@@ -69,14 +69,14 @@ def systematic_resample(key: PRNGKeyArray, log_weights: Float[Array, " n"]) -> I
     return _inverse_cdf(log_weights, (jnp.arange(n, dtype=log_weights.dtype) + u) / n)
 
 
-def stratified_resample(key: PRNGKeyArray, log_weights: Float[Array, " n"]) -> Int[Array, " n"]:
+def stratified_resample(log_weights: Float[Array, " n"], *, key: PRNGKeyArray) -> Int[Array, " n"]:
     """Stratified resampling: one uniform draw in each stratum ``[i/n, (i+1)/n)``."""
     n = log_weights.shape[0]
     u = jax.random.uniform(key, (n,), dtype=log_weights.dtype)
     return _inverse_cdf(log_weights, (jnp.arange(n, dtype=log_weights.dtype) + u) / n)
 
 
-def multinomial_resample(key: PRNGKeyArray, log_weights: Float[Array, " n"]) -> Int[Array, " n"]:
+def multinomial_resample(log_weights: Float[Array, " n"], *, key: PRNGKeyArray) -> Int[Array, " n"]:
     """Multinomial resampling: ``n`` independent draws from the weights (as the inverse
     CDF of ``n`` sorted uniforms, ``O(n log n)`` time and ``O(n)`` memory)."""
     n = log_weights.shape[0]
@@ -128,21 +128,22 @@ def _state(key, particles) -> ParticleState:
 
 
 def init_gaussian(
-    key: PRNGKeyArray,
     n: int,
     mean: Float[ArrayLike, " k"],
     std: Float[ArrayLike, " k"],
     group: type = jaxlie.SE2,
+    *,
+    key: PRNGKeyArray,
 ) -> ParticleState:
     """``n`` particles with pose vectors ``mean + std * N(0, I)`` (independent per
     component; angles in rad), uniform weights.
 
     Args:
-        key: PRNG key (split; the state keeps a fresh one).
         n: number of particles.
         mean: ``[k]`` pose vector, ``(x, y, theta)`` or ``(x, y, z, roll, pitch, yaw)``.
         std: ``[k]`` standard deviations (m, rad).
         group: ``jaxlie.SE2`` (k = 3) or ``jaxlie.SE3`` (k = 6).
+        key: PRNG key (split; the state keeps a fresh one).
     """
     n = _check_n(n)
     k = dof(group)
@@ -158,11 +159,12 @@ def init_gaussian(
 
 
 def init_uniform_disc(
-    key: PRNGKeyArray,
     n: int,
     center_xy: Float[ArrayLike, " 2"],
     radius_m: float,
     heading_rad: tuple[float, float],
+    *,
+    key: PRNGKeyArray,
 ) -> ParticleState:
     """``n`` SE(2) particles uniform in a disc of ``radius_m`` around ``center_xy`` with
     headings uniform in ``[heading_rad[0], heading_rad[1]]`` (Sec. 12.4.3 uses 2.5 m and
@@ -184,16 +186,18 @@ def init_uniform_disc(
     return _state(k_next, from_vector(v))
 
 
-def init_global(key: PRNGKeyArray, n: int, spec, free: Bool[ArrayLike, "nx ny"]) -> ParticleState:
+def init_global(
+    n: int, spec, free: Bool[ArrayLike, "nx ny"], *, key: PRNGKeyArray
+) -> ParticleState:
     """``n`` SE(2) particles uniform over the free cells of a 2-D grid (uniform position
     inside a free cell chosen uniformly, uniform heading): global localization.
 
     Args:
-        key: PRNG key.
         n: number of particles.
         spec: the 2-D :class:`~lidarjax.raytrace.GridSpec`.
         free: ``[nx ny]`` bool mask of free cells (e.g. ``occupancy < 0.2`` of visited
             cells); at least one must be True.
+        key: PRNG key.
     """
     n = _check_n(n)
     free = jnp.asarray(free)
@@ -282,7 +286,7 @@ class OdometryMotionModel(eqx.Module):
         """Standard deviations of ``xi`` for the control ``chi``."""
         return self.inflation * (self.sigma + self.alpha @ jnp.abs(control))
 
-    def __call__(self, key: PRNGKeyArray, particles: Pose, control: Float[Array, " k"]) -> Pose:
+    def __call__(self, particles: Pose, control: Float[Array, " k"], *, key: PRNGKeyArray) -> Pose:
         n = particles.parameters().shape[0]
         k = dof(self.group)
         dtype = particles.parameters().dtype
@@ -317,7 +321,7 @@ class ParticleFilter(eqx.Module):
     """Particle filter with pluggable, pure motion and measurement models.
 
     Attributes:
-        motion: ``motion(key, particles [n], control) -> particles [n]``, e.g.
+        motion: ``motion(particles [n], control, *, key) -> particles [n]``, e.g.
             :class:`OdometryMotionModel`.
         measurement: ``measurement(particles [n], z) -> [n]`` log-likelihoods (``-inf``
             allowed), e.g. :class:`~lidarjax.localization.ScanModel`. Use an
@@ -352,7 +356,7 @@ class ParticleFilter(eqx.Module):
         """One filter step: motion update with ``control``, measurement update with ``z``
         (skipped where ``update`` is False), estimate, conditional resampling."""
         key, k_motion, k_resample = jax.random.split(state.key, 3)
-        particles = self.motion(k_motion, state.particles, control)
+        particles = self.motion(state.particles, control, key=k_motion)
         n = state.log_weights.shape[0]
         update = jnp.asarray(update)
         ll = jax.lax.cond(
@@ -368,7 +372,7 @@ class ParticleFilter(eqx.Module):
         n_eff = effective_sample_size(log_weights)
         resample = update & (n_eff < self.resample_fraction * n)
         idx = jnp.where(
-            resample, RESAMPLERS[self.resampler](k_resample, log_weights), jnp.arange(n)
+            resample, RESAMPLERS[self.resampler](log_weights, key=k_resample), jnp.arange(n)
         )
         particles = take(particles, idx)
         log_weights = jnp.where(resample, -math.log(n), log_weights)

@@ -32,3 +32,28 @@ def finite_difference(f: Callable, x, *, eps: float = 1e-6) -> np.ndarray:
         cols.append((fp - fm) / (2 * eps))
     jac = np.stack(cols, axis=-1)
     return jac.reshape(np.shape(cols[0]) + x.shape)
+
+
+def carmen_even_scan_stats(name: str, r_min: float, resolution: float = 0.1, margin: float = 3.0):
+    """``(log, GridStats)`` of a shared CARMEN log's even-numbered scans at their corrected
+    poses, on a grid covering their endpoints (the mapping half of the localization tests)."""
+    import jaxlie
+
+    from lidarjax.datasets import fetch, load_carmen
+    from lidarjax.rays import from_scan
+    from lidarjax.raytrace import GridSpec, accumulate
+
+    log = load_carmen(fetch(name))
+    idx = np.arange(0, log.n_scans, 2)
+    p = log.poses[idx]
+    rays = from_scan(
+        jaxlie.SE2.from_xy_theta(p[:, 0], p[:, 1], p[:, 2]),
+        log.azimuths_rad,
+        log.ranges_m[idx],
+        r_min,
+        log.usable_range_m,
+    )
+    spec = GridSpec.covering(
+        np.asarray(rays.endpoints()[rays.kind == 0]), resolution, margin=margin
+    )
+    return log, accumulate(spec, rays)

@@ -5,32 +5,18 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
-import jaxlie
 import numpy as np
 import pytest
+from helpers import carmen_even_scan_stats
 from test_experiments import run_experiment
 
 from lidarjax import localization as loc
 from lidarjax import maps
-from lidarjax.datasets import fetch, load_carmen
-from lidarjax.rays import from_scan
-from lidarjax.raytrace import GridSpec, accumulate
 
 
 @pytest.fixture(scope="module")
 def intel():
-    log = load_carmen(fetch("intel"))
-    idx = np.arange(0, log.n_scans, 2)
-    p = log.poses[idx]
-    rays = from_scan(
-        jaxlie.SE2.from_xy_theta(p[:, 0], p[:, 1], p[:, 2]),
-        log.azimuths_rad,
-        log.ranges_m[idx],
-        0.1,
-        log.usable_range_m,
-    )
-    spec = GridSpec.covering(np.asarray(rays.endpoints()[rays.kind == 0]), 0.1, margin=3.0)
-    return log, accumulate(spec, rays)
+    return carmen_even_scan_stats("intel", r_min=0.1)
 
 
 @pytest.mark.parametrize("model", ["dec", "end"])

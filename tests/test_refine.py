@@ -9,11 +9,10 @@ import jaxlie
 import numpy as np
 import optimistix as optx
 import pytest
-from helpers import finite_difference
+from helpers import carmen_even_scan_stats, finite_difference
 from scipy import ndimage
 
 from lidarjax import maps
-from lidarjax.datasets import fetch, load_carmen
 from lidarjax.localization import to_vector
 from lidarjax.localization.refine import (
     SmoothDecayRateField,
@@ -23,8 +22,7 @@ from lidarjax.localization.refine import (
     refine_scan_pose,
     smooth_fields,
 )
-from lidarjax.rays import from_scan
-from lidarjax.raytrace import GridSpec, accumulate
+from lidarjax.raytrace import GridSpec
 
 
 def _map(rates, origin=(-2.0, -1.0), res=0.25, outside=0.0):
@@ -163,19 +161,8 @@ def test_refine_bad_input():
 
 @pytest.fixture(scope="module")
 def intel_map():
-    log = load_carmen(fetch("intel"))
-    idx = np.arange(0, log.n_scans, 2)
-    p = log.poses[idx]
-    rays = from_scan(
-        jaxlie.SE2.from_xy_theta(p[:, 0], p[:, 1], p[:, 2]),
-        log.azimuths_rad,
-        log.ranges_m[idx],
-        0.0,
-        log.usable_range_m,
-    )
-    pts = np.asarray(rays.endpoints()[rays.kind == 0])
-    spec = GridSpec.covering(pts, 0.1, margin=3.0)
-    return log, maps.decay_rate_map(accumulate(spec, rays))
+    log, stats = carmen_even_scan_stats("intel", r_min=0.0)
+    return log, maps.decay_rate_map(stats)
 
 
 def test_refinement_converges_on_real_scans(intel_map):

@@ -23,6 +23,7 @@ import jaxlie
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int, PRNGKeyArray
 
+from ..rays import is_concrete
 from ._poses import Pose, dof, from_vector, take, weighted_mean
 
 ResamplerName = Literal["systematic", "stratified", "multinomial"]
@@ -279,7 +280,7 @@ class OdometryMotionModel(eqx.Module):
             ("alpha", self.alpha),
             ("inflation", self.inflation),
         ):
-            if not isinstance(x, jax.core.Tracer) and not bool(jnp.all((x >= 0) & jnp.isfinite(x))):
+            if is_concrete(x) and not bool(jnp.all((x >= 0) & jnp.isfinite(x))):
                 raise ValueError(f"{name} must be finite and >= 0")
 
     def std(self, control: Float[Array, " k"]) -> Float[Array, " k"]:

@@ -1,7 +1,23 @@
 """Grid maps (dissertation chs. 7-8) built from :class:`~lidarjax.raytrace.GridStats`:
 maximum-likelihood decay-rate, reflection and endpoint maps, and the closed-form full map
-posteriors (Beta / Gamma per cell) with their measurement likelihoods and occupancy."""
+posteriors (Beta / Gamma per cell) with their measurement likelihoods and occupancy; DCT
+maps (ch. 9): continuous decay-rate maps with closed-form likelihoods and an optimistix fit;
+GPOM and Hilbert-map baselines (``lidarjax.maps.baselines``, scikit-learn)."""
 
+from ._dct import DCTMap as DCTMap
+from ._dct import closed_form_derivatives as dct_closed_form_derivatives
+from ._dct import closed_form_terms as dct_closed_form_terms
+from ._dct import dct_spectrum as dct_spectrum
+from ._dct import from_grid as dct_from_grid
+from ._dct import log_likelihood as dct_log_likelihood
+from ._dct import optical_depth as dct_optical_depth
+from ._dct import quadrature_nodes as dct_quadrature_nodes
+from ._dct import rays_in_box as rays_in_box
+from ._dct import to_grid as dct_to_grid
+from ._fit import DCTObjective as DCTObjective
+from ._fit import dct_objective as dct_objective
+from ._fit import fit_dct as fit_dct
+from ._fit import grid_initial_map as dct_grid_initial_map
 from ._grid import DecayRateMap as DecayRateMap
 from ._grid import EndpointMap as EndpointMap
 from ._grid import ReflectionMap as ReflectionMap
@@ -19,6 +35,20 @@ from ._posterior import log_likelihood as posterior_log_likelihood
 from ._posterior import occupancy as occupancy
 
 __all__ = [
+    "DCTMap",
+    "DCTObjective",
+    "dct_closed_form_derivatives",
+    "dct_closed_form_terms",
+    "dct_from_grid",
+    "dct_grid_initial_map",
+    "dct_log_likelihood",
+    "dct_objective",
+    "dct_optical_depth",
+    "dct_quadrature_nodes",
+    "dct_spectrum",
+    "dct_to_grid",
+    "fit_dct",
+    "rays_in_box",
     "DecayRateMap",
     "ReflectionMap",
     "EndpointMap",

@@ -6,12 +6,14 @@
 - :func:`endpoint_log_likelihood`: likelihood field, normalised per ray (below Eq. 7.32).
 - :func:`posterior_log_likelihood`: full map posteriors, Eq. (8.22) and its decay-rate
   analogue (implemented in :mod:`lidarjax.maps`).
+- :func:`dct_log_likelihood`: DCT maps, Eqs. (9.5), (9.9)-(9.12) (in :mod:`lidarjax.maps`).
 - :func:`log_likelihood_at_poses` / :func:`ray_log_likelihoods_at_poses`: one 2-D scan at
   many poses.
 - :func:`batch_log_likelihood`: any of the grid models above, forward only, with work
   proportional to the cells the rays visit (particle filters).
 """
 
+from ..maps import dct_log_likelihood as dct_log_likelihood
 from ..maps import posterior_log_likelihood as posterior_log_likelihood
 from ._common import log_likelihood_at_poses as log_likelihood_at_poses
 from ._common import ray_log_likelihoods_at_poses as ray_log_likelihoods_at_poses
@@ -25,6 +27,7 @@ __all__ = [
     "reflection_log_likelihood",
     "endpoint_log_likelihood",
     "posterior_log_likelihood",
+    "dct_log_likelihood",
     "log_likelihood_at_poses",
     "ray_log_likelihoods_at_poses",
     "batch_log_likelihood",

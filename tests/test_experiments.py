@@ -113,3 +113,32 @@ def test_pose_likelihood_small(tmp_path):
     assert row["orderings"]["fmp_better_ll_ref"] and row["orderings"]["fmp_better_ll_dec"]
     for f in ("pose_likelihood.png", "results.md", "results.json"):
         assert (tmp_path / f).stat().st_size > 0
+
+
+def test_dct_maps_small(tmp_path):
+    """Section 9.5 on one log at one resolution with few rays: the table structure, the DCT
+    map beating both occupancy baselines in likelihood (Table 9.3) and scan matching
+    converging."""
+    res = run_experiment(
+        "dct_maps",
+        tmp_path,
+        "logs=[intel]",
+        "resolutions=[8]",
+        "n_rays_accuracy=1000",
+        "n_rays_likelihood=200",
+        "match.n_scans=1",
+        "match.blur_schedule_m=[0.3,0.0]",
+        "figure_resolution_92=8",
+        "figure_resolution_93=8",
+    )
+    (row,) = res["rows"]
+    assert row["n_rays_accuracy"] == 1000 and row["n_rays_likelihood"] == 200
+    (r,) = row["res"].values()
+    assert 0 < r["rmse_dct"] < 1 and 0 < r["rmse_gm"] < 1
+    assert r["lp_dct"] > r["lp_gpom"] and r["lp_dct"] > r["lp_hm"]
+    summ = res["summary"]
+    assert set(summ["table92"]) == {"8"}
+    assert set(summ["table94"]["8"]) == {"dct", "gm", "gpom", "hm"}
+    assert summ["matching"]["n"] == 1 and summ["matching"]["converged"] == 1
+    for f in ("results.md", "dct_maps.png", "dct_baselines.png"):
+        assert (tmp_path / f).stat().st_size > 0

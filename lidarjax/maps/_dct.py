@@ -12,9 +12,9 @@ whose end point lies outside the box therefore has density 0 and a SUB ray whose
 
 Three ways to compute ``S`` for a ray, all exact (they agree to ~1e-12 in float64):
 
-- ``method="paper"``: Eq. (9.10) as written, a double sum over all coefficient pairs
-  ``(i, j)`` and the sign combinations ``alpha, beta, gamma`` — ``O(I^2)`` per ray with
-  ``I = L M`` coefficients; the reference.
+- ``method="paper"``: Eq. (9.10) (see :data:`PAPER_DEGENERATE_PHASE`), a double sum over
+  all coefficient pairs ``(i, j)`` and the sign combinations ``alpha, beta, gamma`` —
+  ``O(I^2)`` per ray with ``I = L M`` coefficients; the reference.
 - ``method="spectral"``: ``lambda`` is itself a cosine series with
   ``(2L-1) x (2M-1)`` coefficients (:func:`dct_spectrum`, computed once per map), so ``S`` is
   a sum of ``O(4 L M)`` closed-form terms ``r cos(theta_mid) sinc(omega r / 2)`` per ray.
@@ -277,15 +277,29 @@ def _pair_frequencies(shape: tuple[int, ...]) -> np.ndarray:
     return np.stack(out).astype(float)
 
 
+PAPER_DEGENERATE_PHASE = 1e-3
+"""The ``"paper"`` path treats a term of Eq. (9.10) as degenerate when its phase change over
+the ray ``|den r|`` is below this (not only at ``den == 0`` exactly, as printed): for tiny
+nonzero ``den`` — e.g. a ray along a box diagonal, where ``(l_i + l_j) v~x - (m_i + m_j) v~y``
+rounds to 1e-16 — the printed quotient ``[sin]_0^r / den`` cancels catastrophically. There
+the degenerate case ``r cos(theta_0)`` is extended by its series in ``den r`` to third
+order (truncation error ``< r (den r)^4 / 24 ~ 4e-14 r``)."""
+
+
 def _paper_A(shape, st, vt, length):
     """``A(i, j, alpha, beta, gamma)`` of Eq. (9.10) for all terms, ``[K I I]``."""
     fr = jnp.asarray(_pair_frequencies(shape), st.dtype)
     den = fr @ vt  # [K I I]
     theta0 = fr @ st
-    zero = den == 0
+    x = den * length
+    zero = jnp.abs(x) < PAPER_DEGENERATE_PHASE
     den_safe = jnp.where(zero, 1.0, den)
     regular = (jnp.sin(theta0 + den_safe * length) - jnp.sin(theta0)) / den_safe
-    return jnp.where(zero, length * jnp.cos(theta0), regular)
+    x2 = x * x
+    series = length * (
+        jnp.cos(theta0) * (1.0 - x2 / 6.0) - jnp.sin(theta0) * 0.5 * x * (1.0 - x2 / 12.0)
+    )
+    return jnp.where(zero, series, regular)
 
 
 def _depth_paper(coeffs, st, vt, length):
@@ -351,10 +365,13 @@ def _clip(lower, upper, origin, direction, length):
     inside_slab = (origin >= lower) & (origin <= upper)
     t_lo = jnp.where(par, jnp.where(inside_slab, -jnp.inf, jnp.inf), jnp.minimum(ta, tb))
     t_hi = jnp.where(par, jnp.where(inside_slab, jnp.inf, -jnp.inf), jnp.maximum(ta, tb))
-    t0 = jnp.clip(jnp.max(t_lo), 0.0, length)
-    t1 = jnp.clip(jnp.min(t_hi), 0.0, length)
-    t1 = jnp.maximum(t1, t0)
-    return t0, t1
+    lo, hi = jnp.max(t_lo), jnp.min(t_hi)
+    # a ray that misses the box (or only touches it behind the origin / beyond its length)
+    # has an empty segment at 0 — also for infinite lengths, where inf - inf would be NaN
+    miss = (hi <= lo) | (hi <= 0) | (lo >= length)
+    t0 = jnp.where(miss, 0.0, jnp.clip(lo, 0.0, length))
+    t1 = jnp.where(miss, 0.0, jnp.clip(hi, 0.0, length))
+    return t0, jnp.maximum(t1, t0)
 
 
 def trace_length(rays: RayBatch) -> Float[Array, "*batch"]:
@@ -710,6 +727,7 @@ def to_grid(map: DCTMap, cells: tuple[int, ...] | None = None) -> DecayRateMap:
 __all__ = [
     "DCTMap",
     "METHODS",
+    "PAPER_DEGENERATE_PHASE",
     "closed_form_derivatives",
     "closed_form_terms",
     "dct_spectrum",

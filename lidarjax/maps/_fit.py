@@ -194,12 +194,7 @@ def dct_objective(
     sub = np.flatnonzero(kind == SUB)
     spec_shape = tuple(2 * n - 1 for n in shape)
     if sub.size:
-
-        def one(o, d, r):
-            st, vt, ell = _segment(probe, o, d, r)
-            return ray_weights(spec_shape, st, vt, ell)
-
-        w_sub = _chunked_stack(one, flat, sub, length, chunk_size)
+        w_sub = _chunked_stack(probe, flat, sub, length, chunk_size, spec_shape)
     else:
         w_sub = jnp.zeros((0,) + spec_shape, flat.origins.dtype)
     hit = np.flatnonzero(kind == HIT)
@@ -214,12 +209,23 @@ def dct_objective(
     )
 
 
-def _chunked_stack(one, flat, idx, length, chunk_size):
-    fn = jax.jit(lambda o, d, r: jax.lax.map(lambda x: jax.vmap(one)(*x), (o, d, r)))
+@functools.partial(jax.jit, static_argnames=("spec_shape",))
+def _stack_weights(probe, origins, directions, lengths, spec_shape):
+    def one(o, d, r):
+        st, vt, ell = _segment(probe, o, d, r)
+        return ray_weights(spec_shape, st, vt, ell)
+
+    return jax.vmap(one)(origins, directions, lengths)
+
+
+def _chunked_stack(probe, flat, idx, length, chunk_size, spec_shape):
+    """Per-ray weights ``[len(idx) *spectrum]`` in host-side chunks (the result is stored)."""
     out = []
     for lo in range(0, idx.size, chunk_size):
         sl = idx[lo : lo + chunk_size]
-        out.append(fn(flat.origins[sl][None], flat.directions[sl][None], length[sl][None])[0])
+        out.append(
+            _stack_weights(probe, flat.origins[sl], flat.directions[sl], length[sl], spec_shape)
+        )
     return jnp.concatenate(out, axis=0)
 
 

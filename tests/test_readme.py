@@ -27,3 +27,10 @@ def test_readme_examples_run():
     assert err.mean() < 0.2, err
     refined = np.asarray(ns["loc"].to_vector(ns["pose"]))
     assert np.linalg.norm(refined[:2] - ns["log"].poses[odd[-1], :2]) < 0.1
+    # DCT maps
+    import optimistix as optx
+
+    assert ns["dct"].shape == (32, 32) and ns["sol"].result == optx.RESULTS.successful
+    assert np.all(np.isfinite(np.asarray(ns["ll_dct"])))
+    matched = np.asarray(ns["matched"].translation())
+    assert np.linalg.norm(matched - ns["log"].poses[ns["s"], :2]) < 0.05

@@ -209,6 +209,9 @@ def evaluate_log(name: str, cfg: DictConfig, figs: dict) -> dict:
             dct40 = dct
         if name == cfg.figure_log and L == int(cfg.figure_resolution_92):
             figs["fig91"] = (dct, np.asarray(grid.rates), grid.spec)
+        if not cfg.likelihood_tables:
+            row["res"][str(L)] = r
+            continue
         # --- Table 9.3 / 9.4: 500 rays
         maps.fit_dct(
             rays_lik,
@@ -328,6 +331,8 @@ def summarize(rows: list[dict], cfg: DictConfig) -> dict:
             delta_mu_percent=100 * (1 - rd.mean() / rg.mean()),
             dct_better=f"{int((rd < rg).sum())}/{len(rd)}",
         )
+        if "lp_dct" not in rows[0]["res"][k]:
+            continue
         t93 = {}
         for other in ("gm", "gpom", "hm"):
             d = np.array([r["res"][k]["lp_dct"] - r["res"][k][f"lp_{other}"] for r in rows])

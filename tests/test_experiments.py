@@ -116,9 +116,9 @@ def test_pose_likelihood_small(tmp_path):
 
 
 def test_dct_maps_small(tmp_path):
-    """Section 9.5 on one log at one resolution with few rays: the table structure, the DCT
-    map beating both occupancy baselines in likelihood (Table 9.3) and scan matching
-    converging."""
+    """Section 9.5 on one log at one resolution with few rays: the table structure and the
+    DCT map beating both occupancy baselines in likelihood (Table 9.3). Scan matching is
+    off here (compile time); tests/test_fit_dct.py and the README example cover it."""
     res = run_experiment(
         "dct_maps",
         tmp_path,
@@ -126,8 +126,7 @@ def test_dct_maps_small(tmp_path):
         "resolutions=[8]",
         "n_rays_accuracy=1000",
         "n_rays_likelihood=200",
-        "match.n_scans=1",
-        "match.blur_schedule_m=[0.3,0.0]",
+        "match.n_scans=0",
         "figure_resolution_92=8",
         "figure_resolution_93=8",
     )
@@ -139,6 +138,6 @@ def test_dct_maps_small(tmp_path):
     summ = res["summary"]
     assert set(summ["table92"]) == {"8"}
     assert set(summ["table94"]["8"]) == {"dct", "gm", "gpom", "hm"}
-    assert summ["matching"]["n"] == 1 and summ["matching"]["converged"] == 1
+    assert "matching" not in summ and row["matches"] == []
     for f in ("results.md", "dct_maps.png", "dct_baselines.png"):
         assert (tmp_path / f).stat().st_size > 0

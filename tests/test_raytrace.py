@@ -100,8 +100,11 @@ def assert_same_cells(a, b, tol):
 # traverse
 # --------------------------------------------------------------------------------------
 
-coord = st.floats(-1.5, 3.5, allow_nan=False, allow_infinity=False)
-unit = st.floats(-1.0, 1.0, allow_nan=False, allow_infinity=False)
+# XLA on the CPU flushes subnormal floats to zero (a coordinate of -1e-308 is 0 inside jit
+# but negative in NumPy), so subnormals are excluded: they would test the FPU mode, not the
+# walk.
+coord = st.floats(-1.5, 3.5, allow_nan=False, allow_infinity=False, allow_subnormal=False)
+unit = st.floats(-1.0, 1.0, allow_nan=False, allow_infinity=False, allow_subnormal=False)
 
 
 @given(

@@ -21,6 +21,7 @@ import math
 from collections.abc import Callable, Sequence
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import jaxlie
 import numpy as np
@@ -373,17 +374,24 @@ def refine_dct_scan_pose(
     """Scan matching on a DCT map (ch. 9): coarse-to-fine :func:`refine_pose` of one 2-D
     scan with :class:`DCTScan` on :meth:`~lidarjax.maps.DCTMap.smoothed` copies of the map
     (Gaussian widths in m, coarse first; the last stage should be 0, the map itself).
-    Compiled once per scan size and schedule (``eqx.filter_jit``); vmappable over scans.
+    The stages run as one ``lax.scan`` (one compiled refinement); the whole call is
+    compiled once per scan size and schedule (``eqx.filter_jit``); vmappable over scans.
 
     Returns:
         The final pose and the last stage's ``Solution``.
     """
     if len(blur_schedule_m) == 0:
         raise ValueError("blur_schedule_m must not be empty")
-    pose, sol = pose0, None
-    for sigma in blur_schedule_m:
-        obj = DCTScan(
-            map.smoothed(float(sigma)), azimuths, ranges, r_min, r_max, ray_floor=ray_floor
-        )
-        pose, sol = refine_pose(obj, pose, max_steps=max_steps)
-    return pose, sol
+    sig = np.asarray(blur_schedule_m, dtype=float)
+    if not np.all(np.isfinite(sig) & (sig >= 0)):
+        raise ValueError(f"blur_schedule_m must be finite and >= 0, got {blur_schedule_m}")
+    sigmas = jnp.asarray(sig, map.coeffs.dtype)
+
+    def stage(pose_params, sigma):
+        # one compiled refinement, scanned over the blur widths
+        obj = DCTScan(map.smoothed(sigma), azimuths, ranges, r_min, r_max, ray_floor=ray_floor)
+        pose, sol = refine_pose(obj, jaxlie.SE2(pose_params), max_steps=max_steps)
+        return pose.parameters(), sol
+
+    params, sols = jax.lax.scan(stage, pose0.parameters(), sigmas)
+    return jaxlie.SE2(params), jax.tree_util.tree_map(lambda x: x[-1], sols)

@@ -123,11 +123,13 @@ class DCTMap(eqx.Module):
         """The map whose amplitude ``f`` is convolved with a Gaussian of standard deviation
         ``sigma_m`` (m) (applied to the even periodic extension): each coefficient is scaled
         by ``exp(-sigma^2 |k|^2 / 2)`` with ``k = pi (l / X, m / Y)`` rad/m. A wider basin
-        for coarse-to-fine pose refinement; ``sigma_m = 0`` returns the map."""
-        if not (np.isfinite(sigma_m) and sigma_m >= 0):
-            raise ValueError(f"sigma_m must be finite and >= 0, got {sigma_m!r}")
-        if sigma_m == 0:
-            return self
+        for coarse-to-fine pose refinement; ``sigma_m = 0`` returns the map. ``sigma_m`` may
+        be traced (e.g. scanned over a blur schedule)."""
+        if is_concrete(sigma_m):
+            if not (np.isfinite(sigma_m) and sigma_m >= 0):
+                raise ValueError(f"sigma_m must be finite and >= 0, got {sigma_m!r}")
+            if sigma_m == 0:
+                return self
         k2 = 0.0
         for ax, n in enumerate(self.shape):
             shape = [1] * self.dim

@@ -184,13 +184,10 @@ def evaluate_log(name: str, cfg: DictConfig, figs: dict) -> dict:
     pts, labels = baselines.occupancy_training_points(
         rays_lik, box_lo, box_hi, free_step_m=cfg.baselines.free_step_m, seed=cfg.seed
     )
-    dct40 = None
-    for L in cfg.resolutions:
-        L = int(L)
-        r = {}
-        # --- Table 9.2: accuracy with 1e4 rays
-        dct, sol = maps.fit_dct(
-            rays_acc,
+
+    def fit(rays, L):
+        return maps.fit_dct(
+            rays,
             (L, L),
             lower=lower,
             extent=ext,
@@ -198,6 +195,13 @@ def evaluate_log(name: str, cfg: DictConfig, figs: dict) -> dict:
             atol=cfg.fit.atol,
             max_steps=cfg.fit.max_steps,
         )
+
+    dct40 = None
+    for L in cfg.resolutions:
+        L = int(L)
+        r = {}
+        # --- Table 9.2: accuracy with 1e4 rays
+        dct, sol = fit(rays_acc, L)
         grid = maps.decay_rate_map(accumulate(GridSpec(lower, size / L, (L, L)), rays_acc))
         lam_dct = np.asarray(dct.decay_rate(jnp.asarray(centres)))
         cells = np.clip(np.floor((centres - lower) / (size / L)).astype(int), 0, L - 1)
@@ -213,26 +217,8 @@ def evaluate_log(name: str, cfg: DictConfig, figs: dict) -> dict:
             row["res"][str(L)] = r
             continue
         # --- Table 9.3 / 9.4: 500 rays
-        maps.fit_dct(
-            rays_lik,
-            (L, L),
-            lower=lower,
-            extent=ext,
-            rtol=cfg.fit.rtol,
-            atol=cfg.fit.atol,
-            max_steps=cfg.fit.max_steps,
-        )  # warm-up (compile)
-        (dct_l, sol_l), t_dct = _timed(
-            lambda L=L: maps.fit_dct(
-                rays_lik,
-                (L, L),
-                lower=lower,
-                extent=ext,
-                rtol=cfg.fit.rtol,
-                atol=cfg.fit.atol,
-                max_steps=cfg.fit.max_steps,
-            )
-        )
+        fit(rays_lik, L)  # warm-up (compile)
+        (dct_l, sol_l), t_dct = _timed(lambda L=L: fit(rays_lik, L))
         spec_l = GridSpec(lower, size / L, (L, L))
         accumulate(spec_l, rays_lik)  # warm-up
         grid_l, t_gm = _timed(

@@ -118,6 +118,20 @@ class SmoothDecayRateField(eqx.Module):
         return jnp.where(inside, val, self.outside_rate)
 
 
+def _check_scan(azimuths, ranges, r_min, r_max, dtype) -> tuple[Array, Array]:
+    """One 2-D scan's ``[b]`` azimuths and ranges as arrays of ``dtype`` (``ValueError`` for
+    mismatched or empty shapes, bad ranges or limits)."""
+    az = jnp.asarray(azimuths, dtype)
+    rg = jnp.asarray(ranges, dtype)
+    if az.ndim != 1 or rg.shape != az.shape or az.shape[0] == 0:
+        raise ValueError(
+            f"azimuths and ranges must both have shape [b], b > 0; got {az.shape}, {rg.shape}"
+        )
+    if not (0 <= float(r_min) < float(r_max)):
+        raise ValueError(f"need 0 <= r_min < r_max, got {r_min}, {r_max}")
+    return az, check_finite_nonnegative(rg, "ranges")
+
+
 class SmoothDecayRateScan(eqx.Module):
     """Decay-rate log-likelihood of one 2-D scan on a :class:`SmoothDecayRateField`;
     ``obj(pose) -> []`` (nats), differentiable in the pose (world-from-sensor SE(2)).
@@ -165,16 +179,7 @@ class SmoothDecayRateScan(eqx.Module):
     ):
         if not isinstance(field, SmoothDecayRateField):
             raise ValueError(f"field must be a SmoothDecayRateField, got {type(field).__name__}")
-        dtype = field.rates.dtype
-        az = jnp.asarray(azimuths, dtype)
-        rg = jnp.asarray(ranges, dtype)
-        if az.ndim != 1 or rg.shape != az.shape or az.shape[0] == 0:
-            raise ValueError(
-                f"azimuths and ranges must both have shape [b], b > 0; got {az.shape}, {rg.shape}"
-            )
-        rg = check_finite_nonnegative(rg, "ranges")
-        if not (0 <= float(r_min) < float(r_max)):
-            raise ValueError(f"need 0 <= r_min < r_max, got {r_min}, {r_max}")
+        az, rg = _check_scan(azimuths, ranges, r_min, r_max, field.rates.dtype)
         self.field = field
         self.azimuths, self.ranges = az, rg
         self.r_min, self.r_max = float(r_min), float(r_max)
@@ -247,17 +252,8 @@ class DCTScan(eqx.Module):
     ):
         if not isinstance(map, DCTMap) or map.dim != 2:
             raise ValueError("map must be a 2-D DCTMap")
-        dtype = map.coeffs.dtype
-        az = jnp.asarray(azimuths, dtype)
-        rg = jnp.asarray(ranges, dtype)
-        if az.ndim != 1 or rg.shape != az.shape or az.shape[0] == 0:
-            raise ValueError(
-                f"azimuths and ranges must both have shape [b], b > 0; got {az.shape}, {rg.shape}"
-            )
-        self.map, self.azimuths = map, az
-        self.ranges = check_finite_nonnegative(rg, "ranges")
-        if not (0 <= float(r_min) < float(r_max)):
-            raise ValueError(f"need 0 <= r_min < r_max, got {r_min}, {r_max}")
+        self.azimuths, self.ranges = _check_scan(azimuths, ranges, r_min, r_max, map.coeffs.dtype)
+        self.map = map
         self.r_min, self.r_max = float(r_min), float(r_max)
         self.ray_floor = None if ray_floor is None else float(ray_floor)
 

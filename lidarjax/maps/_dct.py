@@ -40,7 +40,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from ..rays import HIT, SUB, SUP, RayBatch, is_concrete
+from ..rays import HIT, SUB, RayBatch, is_concrete
 from ..raytrace import GridSpec
 from ._grid import DecayRateMap
 
@@ -744,5 +744,3 @@ __all__ = [
     "to_grid",
     "trace_length",
 ]
-
-_ = SUP  # kinds other than HIT/SUB are SUP

@@ -500,6 +500,12 @@ def fold_rays(
     )
 
 
+def gather(values: Array, cells: Int[Array, "... d"]) -> Array:
+    """``values[cells]`` for integer index vectors ``cells`` (clipped into the grid)."""
+    idx = tuple(jnp.clip(cells[..., k], 0, values.shape[k] - 1) for k in range(values.ndim))
+    return values[idx]
+
+
 def max_cells_for(spec: GridSpec, length_m: float | None = None) -> int:
     """A ``max_cells`` budget for :func:`traverse` that no ray of length ``length_m`` (m)
     can exceed in this grid (default: rays crossing the whole grid)."""

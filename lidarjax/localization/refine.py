@@ -28,11 +28,11 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, ArrayLike, Float
 
+from .._math import log1mexp
 from ..maps._dct import DCTMap
 from ..maps._dct import log_likelihood as dct_log_likelihood
 from ..maps._grid import DecayRateMap
 from ..rays import HIT, SUB, check_finite_nonnegative, classify, from_scan
-from ..sensor_models._common import log1mexp
 
 __all__ = [
     "DCTScan",

@@ -2,6 +2,8 @@
 maximum-likelihood decay-rate, reflection and endpoint maps, and the closed-form full map
 posteriors (Beta / Gamma per cell) with their measurement likelihoods and occupancy; DCT
 maps (ch. 9): continuous decay-rate maps with closed-form likelihoods and an optimistix fit;
+the decay-rate field interface (``AbstractDecayRateField``: grid, DCT or a user's field,
+one forward model ``field_log_likelihood`` and one optimistix ``fit``);
 GPOM and Hilbert-map baselines (``lidarjax.maps.baselines``, scikit-learn)."""
 
 from ._dct import DCTMap as DCTMap
@@ -14,6 +16,10 @@ from ._dct import optical_depth as dct_optical_depth
 from ._dct import quadrature_nodes as dct_quadrature_nodes
 from ._dct import rays_in_box as rays_in_box
 from ._dct import to_grid as dct_to_grid
+from ._field import AbstractDecayRateField as AbstractDecayRateField
+from ._field import AbstractQuadratureField as AbstractQuadratureField
+from ._field import field_log_likelihood as field_log_likelihood
+from ._field import fit as fit
 from ._fit import DCTObjective as DCTObjective
 from ._fit import dct_objective as dct_objective
 from ._fit import fit_dct as fit_dct
@@ -35,6 +41,10 @@ from ._posterior import log_likelihood as posterior_log_likelihood
 from ._posterior import occupancy as occupancy
 
 __all__ = [
+    "AbstractDecayRateField",
+    "AbstractQuadratureField",
+    "field_log_likelihood",
+    "fit",
     "DCTMap",
     "DCTObjective",
     "dct_closed_form_derivatives",

@@ -34,7 +34,6 @@ import functools
 import itertools
 import math
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -42,12 +41,13 @@ from jaxtyping import Array, ArrayLike, Float
 
 from ..rays import HIT, SUB, RayBatch, is_concrete
 from ..raytrace import GridSpec
+from ._field import AbstractDecayRateField, clip_to_box, combine_log_likelihood, map_chunks
 from ._grid import DecayRateMap
 
 METHODS = ("auto", "paper", "spectral", "quadrature")
 
 
-class DCTMap(eqx.Module):
+class DCTMap(AbstractDecayRateField):
     """A DCT decay-rate map, Eq. (9.6).
 
     Attributes:
@@ -143,6 +143,24 @@ class DCTMap(eqx.Module):
         p = jnp.asarray(points)
         lam = self.amplitude(p) ** 2
         return jnp.where(self.contains(p), lam, 0.0)
+
+    def integral(
+        self,
+        origins: Float[Array, "n d"],
+        directions: Float[Array, "n d"],
+        lengths: Float[Array, " n"],
+    ) -> Float[Array, " n"]:
+        """Optical depth per ray (:func:`optical_depth` with ``method="auto"``); the
+        :class:`~lidarjax.maps.AbstractDecayRateField` interface."""
+        return optical_depth(self, origins, directions, lengths)
+
+    def parameters(self) -> Float[Array, "*shape"]:
+        """The coefficients (unconstrained: ``lambda = f^2 >= 0`` for any value)."""
+        return self.coeffs
+
+    def with_parameters(self, params: Float[Array, "*shape"]) -> DCTMap:
+        """The map with coefficients ``params`` over the same box."""
+        return DCTMap(params, self.lower, self.extent)
 
 
 def _amplitude(coeffs, xt):
@@ -357,25 +375,6 @@ def _depth_quadrature(coeffs, st, vt, length, nodes, weights):
 # clipping rays to the box and the log-likelihood
 
 
-def _clip(lower, upper, origin, direction, length):
-    """Entry and exit distances ``0 <= t0 <= t1 <= length`` of the ray's part inside the
-    box (``t0 = t1`` when it misses the box); NaN-free for axis-parallel rays."""
-    par = direction == 0
-    dsafe = jnp.where(par, 1.0, direction)
-    ta = (lower - origin) / dsafe
-    tb = (upper - origin) / dsafe
-    inside_slab = (origin >= lower) & (origin <= upper)
-    t_lo = jnp.where(par, jnp.where(inside_slab, -jnp.inf, jnp.inf), jnp.minimum(ta, tb))
-    t_hi = jnp.where(par, jnp.where(inside_slab, jnp.inf, -jnp.inf), jnp.maximum(ta, tb))
-    lo, hi = jnp.max(t_lo), jnp.min(t_hi)
-    # a ray that misses the box (or only touches it behind the origin / beyond its length)
-    # has an empty segment at 0 — also for infinite lengths, where inf - inf would be NaN
-    miss = (hi <= lo) | (hi <= 0) | (lo >= length)
-    t0 = jnp.where(miss, 0.0, jnp.clip(lo, 0.0, length))
-    t1 = jnp.where(miss, 0.0, jnp.clip(hi, 0.0, length))
-    return t0, jnp.maximum(t1, t0)
-
-
 def trace_length(rays: RayBatch) -> Float[Array, "*batch"]:
     """Range up to which each ray's optical depth is needed: ``r`` (HIT), ``r_min`` (SUB,
     Eq. 9.11), ``r_max`` (SUP, Eq. 9.12)."""
@@ -386,7 +385,7 @@ def trace_length(rays: RayBatch) -> Float[Array, "*batch"]:
 
 def _segment(m: DCTMap, origin, direction, length):
     """Normalised start point, normalised direction and length of the in-box part."""
-    t0, t1 = _clip(m.lower, m.upper, origin, direction, length)
+    t0, t1 = clip_to_box(m.lower, m.upper, origin, direction, length)
     st = m.normalized(origin + t0 * direction)
     vt = jnp.pi * direction / m.extent
     return st, vt, t1 - t0
@@ -399,17 +398,6 @@ def _ray_depth(m: DCTMap, method: str, spectrum, quad, origin, direction, length
     if method == "spectral":
         return _depth_spectral(spectrum, st, vt, ell)
     return _depth_quadrature(m.coeffs, st, vt, ell, *quad)
-
-
-def _log1mexp(x):
-    from ..sensor_models._common import log1mexp
-
-    return log1mexp(x)
-
-
-def _safe_log(x):
-    pos = x > 0
-    return jnp.where(pos, jnp.log(jnp.where(pos, x, 1.0)), -jnp.inf)
 
 
 def _check(m, rays, method, chunk_size):
@@ -425,20 +413,6 @@ def _check(m, rays, method, chunk_size):
         raise ValueError(f"chunk_size must be a positive int, got {chunk_size!r}")
 
 
-def _chunked(fn, args, n, chunk_size):
-    """``vmap(fn)`` over the leading axis of ``args``, in chunks run by ``lax.map``."""
-    chunk = max(1, min(chunk_size, n))
-    n_chunks = -(-n // chunk)
-    pad = n_chunks * chunk - n
-
-    def padded(x):
-        x = jnp.concatenate([x, jnp.broadcast_to(x[:1], (pad,) + x.shape[1:])], axis=0)
-        return x.reshape((n_chunks, chunk) + x.shape[1:])
-
-    out = jax.lax.map(lambda a: jax.vmap(fn)(*a), tuple(padded(a) for a in args))
-    return out.reshape(-1)[:n]
-
-
 @functools.partial(jax.jit, static_argnames=("method", "chunk_size", "n_nodes"))
 def _optical_depth(m, origins, directions, lengths, method, chunk_size, n_nodes):
     spectrum = dct_spectrum(m.coeffs) if method == "spectral" else None
@@ -449,7 +423,7 @@ def _optical_depth(m, origins, directions, lengths, method, chunk_size, n_nodes)
     fn = functools.partial(_ray_depth, m, method, spectrum, quad)
     if origins.shape[0] == 0:
         return jnp.zeros((0,), origins.dtype)
-    return _chunked(fn, (origins, directions, lengths), origins.shape[0], chunk_size)
+    return map_chunks(jax.vmap(fn), (origins, directions, lengths), chunk_size)
 
 
 def optical_depth(
@@ -539,9 +513,7 @@ def log_likelihood(
         n_nodes=n_nodes,
     )
     lam = map.decay_rate(flat.origins + flat.ranges[:, None] * flat.directions)
-    hit = _safe_log(lam) - depth
-    ll = jnp.where(flat.kind == HIT, hit, jnp.where(flat.kind == SUB, _log1mexp(depth), -depth))
-    return ll.reshape(rays.shape)
+    return combine_log_likelihood(flat.kind, lam, depth).reshape(rays.shape)
 
 
 def rays_in_box(map: DCTMap, rays: RayBatch) -> Array:
@@ -549,7 +521,7 @@ def rays_in_box(map: DCTMap, rays: RayBatch) -> Array:
     it, SUB rays whose first ``r_min`` metres reach it and SUP rays that cross it."""
     flat = rays.flatten()
     length = trace_length(flat)
-    t0, t1 = jax.vmap(lambda o, d, r: _clip(map.lower, map.upper, o, d, r))(
+    t0, t1 = jax.vmap(lambda o, d, r: clip_to_box(map.lower, map.upper, o, d, r))(
         flat.origins, flat.directions, jnp.minimum(length, 1e30)
     )
     end_in = map.contains(flat.origins + flat.ranges[:, None] * flat.directions)

@@ -30,12 +30,12 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
+from .._math import log1mexp
 from ..rays import HIT, SUB, SUP, RayBatch
 from ..raytrace import GridSpec, accumulate
 from ._dct import (
     DCTMap,
     _amplitude,
-    _log1mexp,
     _segment,
     dct_spectrum,
     from_grid,
@@ -76,7 +76,7 @@ class DCTObjective(eqx.Module):
         pos = f2 > 0
         log_lam = jnp.where(pos, jnp.log(jnp.where(pos, f2, 1.0)), -jnp.inf)
         depth_sub = jnp.tensordot(self.w_sub, c, axes=c.ndim)
-        return jnp.sum(log_lam) - jnp.sum(self.w_free * c) + jnp.sum(_log1mexp(depth_sub))
+        return jnp.sum(log_lam) - jnp.sum(self.w_free * c) + jnp.sum(log1mexp(depth_sub))
 
 
 @functools.partial(jax.jit, static_argnames=("shape", "chunk_size", "method"))

@@ -22,8 +22,18 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
+from .._math import mul0
 from ..rays import is_concrete
-from ..raytrace import GridSpec, GridStats
+from ..raytrace import (
+    GridSpec,
+    GridStats,
+    RayFold,
+    fold_traversal,
+    gather,
+    max_cells_for,
+    traverse,
+)
+from ._field import AbstractDecayRateField
 
 
 def _check_stats(stats) -> None:
@@ -42,8 +52,13 @@ def _check_scalar(value, name: str, *, lo: float = 0.0, hi: float | None = None)
         raise ValueError(f"{name} must be finite and {bound}, got {v}")
 
 
-class DecayRateMap(eqx.Module):
+class DecayRateMap(AbstractDecayRateField):
     """Decay-rate map (dissertation Sec. 7.3): a piecewise-constant decay rate per cell.
+
+    A :class:`~lidarjax.maps.AbstractDecayRateField`: ``decay_rate`` looks up the cell of a
+    point, ``integral`` is the exact piecewise sum ``sum_i lambda_i d_i`` of the ray tracer
+    (Eq. 7.13), and :func:`~lidarjax.maps.fit` optimises the amplitudes
+    ``sqrt(lambda_i)`` (:meth:`parameters`), so the rates stay non-negative.
 
     Attributes:
         spec: the grid.
@@ -64,6 +79,64 @@ class DecayRateMap(eqx.Module):
             )
         if jnp.shape(self.outside_rate) != ():
             raise ValueError(f"outside_rate must be a scalar, got {jnp.shape(self.outside_rate)}")
+
+    @property
+    def dim(self) -> int:
+        """Spatial dimension (2 or 3)."""
+        return self.spec.dim
+
+    def decay_rate(self, points: Float[ArrayLike, "*b d"]) -> Float[Array, "*b"]:
+        """Rate (1/m) of the cell containing each point; ``outside_rate`` off the grid."""
+        cells = self.spec.cell_of(points)
+        return jnp.where(self.spec.contains(cells), gather(self.rates, cells), self.outside_rate)
+
+    def integral(
+        self,
+        origins: Float[Array, "n d"],
+        directions: Float[Array, "n d"],
+        lengths: Float[Array, " n"],
+    ) -> Float[Array, " n"]:
+        """Optical depth ``sum_i lambda_i d_i`` per ray (exact per-cell lengths ``d_i`` from
+        :func:`~lidarjax.raytrace.traverse`, ``outside_rate`` beyond the grid), Eq. (7.13).
+        Differentiable in the rates and the rays (where the cell sequence is locally
+        constant). The traversal budget covers the longest ray when ``lengths`` is concrete,
+        else the whole grid."""
+        length_m = float(np.max(np.asarray(lengths))) if is_concrete(lengths) else None
+        if length_m is not None and not np.isfinite(length_m):
+            length_m = None
+        budget = max_cells_for(self.spec, length_m)
+        tr = jax.vmap(lambda o, d, r: traverse(self.spec, o, d, r, budget))(
+            origins, directions, lengths
+        )
+        return grid_optical_depth(self, fold_traversal(tr, rate_term(self)), lengths)
+
+    def parameters(self) -> Float[Array, "*shape"]:
+        """``sqrt(rates)``: :func:`~lidarjax.maps.fit` optimises amplitudes ``a`` with
+        ``lambda = a^2`` (like the DCT map's ``f^2``); ``outside_rate`` stays fixed."""
+        return jnp.sqrt(self.rates)
+
+    def with_parameters(self, params: Float[Array, "*shape"]) -> DecayRateMap:
+        """The map with rates ``params**2``."""
+        return DecayRateMap(spec=self.spec, rates=params**2, outside_rate=self.outside_rate)
+
+
+def _rate_term(rates, cells, lengths):
+    return gather(rates, cells) * lengths
+
+
+def rate_term(m: DecayRateMap):
+    """Per-cell summand ``lambda_i d_i`` of the optical depth (a traversal ``term``)."""
+    return jax.tree_util.Partial(_rate_term, m.rates)
+
+
+def grid_optical_depth(m: DecayRateMap, fold: RayFold, lengths) -> Array:
+    """Optical depth ``Lambda(L) = int_0^L lambda`` of rays from their traversal fold with
+    :func:`rate_term`: the cells inside the grid plus the parts outside at
+    ``m.outside_rate`` (``0 * inf := 0`` for an infinite ray)."""
+    out_len = jnp.maximum(lengths - fold.grid_len, 0.0)
+    lam_last = gather(m.rates, fold.last_cell)
+    depth = fold.body + jnp.where(fold.any_valid, lam_last * fold.last_len, 0.0)
+    return depth + mul0(m.outside_rate, out_len)
 
 
 class ReflectionMap(eqx.Module):

@@ -4,7 +4,6 @@ traversal summary and the pose-batched evaluation of 2-D scans."""
 from __future__ import annotations
 
 import functools
-import math
 from collections.abc import Callable
 
 import equinox as eqx
@@ -12,39 +11,14 @@ import jax
 import jax.numpy as jnp
 import jaxlie
 import numpy as np
-from jaxtyping import Array, ArrayLike, Bool, Float, Int
+from jaxtyping import Array, ArrayLike, Bool, Float
 
+from .._math import log1mexp as log1mexp
+from .._math import mul0 as mul0
+from .._math import safe_log as safe_log
 from ..rays import HIT, SUB, RayBatch, from_scan, is_concrete
 from ..raytrace import GridSpec, fold_traversal, max_cells_for, traverse
-
-_LOG2 = math.log(2.0)
-
-
-def safe_log(x: Array) -> Array:
-    """``log(x)`` with ``log(0) = -inf`` and a finite (zero) gradient at ``x <= 0``."""
-    pos = x > 0
-    return jnp.where(pos, jnp.log(jnp.where(pos, x, 1.0)), -jnp.inf)
-
-
-def log1mexp(x: Array) -> Array:
-    """``log(1 - exp(-x))`` for ``x >= 0``, stable for small and large ``x``; ``-inf`` at
-    ``x <= 0`` with a zero (not NaN) gradient there."""
-    pos = x > 0
-    xs = jnp.where(pos, x, 1.0)
-    small = xs < _LOG2
-    a = jnp.log(-jnp.expm1(-jnp.where(small, xs, _LOG2)))
-    b = jnp.log1p(-jnp.exp(-jnp.where(small, _LOG2, xs)))
-    return jnp.where(pos, jnp.where(small, a, b), -jnp.inf)
-
-
-def mul0(a: Array, b: Array) -> Array:
-    """``a * b`` with ``0 * inf := 0``; NaN-free gradients (zero where the product is 0 or
-    infinite)."""
-    zero = (a == 0) | (b == 0)
-    infinite = ~zero & ~(jnp.isfinite(a) & jnp.isfinite(b))
-    safe = zero | infinite
-    prod = jnp.where(safe, 1.0, a) * jnp.where(safe, 1.0, b)
-    return jnp.where(zero, 0.0, jnp.where(infinite, jnp.sign(a) * jnp.sign(b) * jnp.inf, prod))
+from ..raytrace import gather as gather
 
 
 def check_model_inputs(model, model_type: type, rays, name: str = "map") -> None:
@@ -78,12 +52,6 @@ def trace_lengths(rays: RayBatch) -> Float[Array, "*batch"]:
     return jnp.where(
         rays.kind == HIT, rays.ranges, jnp.where(rays.kind == SUB, rays.r_min, rays.r_max)
     )
-
-
-def gather(values: Array, cells: Int[Array, "... d"]) -> Array:
-    """``values[cells]`` for integer index vectors ``cells`` (clipped into the grid)."""
-    idx = tuple(jnp.clip(cells[..., k], 0, values.shape[k] - 1) for k in range(values.ndim))
-    return values[idx]
 
 
 @functools.partial(jax.jit, static_argnames=("term", "finish", "max_cells"))

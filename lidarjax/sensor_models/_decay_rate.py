@@ -2,11 +2,10 @@
 
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from ..maps._grid import DecayRateMap
+from ..maps._grid import DecayRateMap, grid_optical_depth, rate_term
 from ..rays import HIT, SUB, RayBatch
 from ..raytrace import RayFold
 from ._common import (
@@ -15,30 +14,21 @@ from ._common import (
     gather,
     log1mexp,
     map_over_rays,
-    mul0,
     safe_log,
     trace_lengths,
 )
 
 
-def _term(rates, cells, lengths):
-    return gather(rates, cells) * lengths
-
-
 def term(m: DecayRateMap):
     """Per-cell summand ``lambda_i d_i`` of the optical depth."""
-    return jax.tree_util.Partial(_term, m.rates)
+    return rate_term(m)
 
 
 def finish(m: DecayRateMap, f: RayFold, origin, direction, length, kind):
     """Log-likelihood of rays from their :class:`~lidarjax.raytrace.RayFold` (any batch)."""
     inside = f.any_valid & (f.t_end >= length)
-    out_len = jnp.maximum(length - f.grid_len, 0.0)
     lam_last = gather(m.rates, f.last_cell)
-    # Optical depth Lambda(L) = int_0^L lambda(x(r)) dr: cells inside the grid plus the
-    # outside parts at the outside rate (0 * inf := 0 for an infinite SUP ray).
-    depth = f.body + jnp.where(f.any_valid, lam_last * f.last_len, 0.0)
-    depth = depth + mul0(m.outside_rate, out_len)
+    depth = grid_optical_depth(m, f, length)
     lam_k = jnp.where(inside, lam_last, m.outside_rate)
     hit = safe_log(lam_k) - depth  # Eq. (7.13)
     sub = log1mexp(depth)  # Eq. (7.16): P(sub) = 1 - N(r_min)

@@ -141,3 +141,47 @@ def test_dct_maps_small(tmp_path):
     assert "matching" not in summ and row["matches"] == []
     for f in ("results.md", "dct_maps.png", "dct_baselines.png"):
         assert (tmp_path / f).stat().st_size > 0
+
+
+def test_decay_rate_fields_small(tmp_path):
+    """Grid vs DCT vs the user-defined RBF field on one log at L = 10 with few rays: the
+    results structure, equal parameter counts, and the DCT map beating the grid map in
+    held-out log-likelihood (the grid map gives zero rate to cells no mapping ray crossed)."""
+    import math
+
+    n_rays = 300
+    res = run_experiment(
+        "decay_rate_fields",
+        tmp_path,
+        "logs=[intel]",
+        "resolutions=[10]",
+        f"n_rays={n_rays}",
+        "rbf.max_steps=30",
+        "fit.max_steps=200",
+        "figure_resolution=10",
+    )
+    (row,) = res["rows"]
+    assert row["log"] == "intel" and set(row["res"]) == {"10"}
+    assert 0 < row["n_test"] <= n_rays and 0 < row["n_train"] <= n_rays
+    r = row["res"]["10"]
+    models = ("grid", "dct", "rbf")
+    assert 0 < r["n_common_finite"] <= row["n_test"]
+    for m in models:
+        s = r[m]
+        assert s["n_parameters"] == 10 * 10, (m, s["n_parameters"])
+        assert math.isfinite(s["ll"]) and s["ll"] >= res["config"]["floor_nats"]
+        assert math.isfinite(s["ll_unfloored_common"])
+        assert 0 <= s["n_floored"] <= row["n_test"]
+        assert s["fit_s"] > 0
+    assert 0 < r["rbf"]["steps"] <= 30 and 0 < r["dct"]["steps"] <= 200
+    assert r["best"] == max(models, key=lambda m: r[m]["ll"])
+    # The ML grid map makes rays through never-traversed cells impossible (floored).
+    assert r["grid"]["n_floored"] > 0
+    assert r["dct"]["ll"] > r["grid"]["ll"]
+    summ = res["summary"]["10"]
+    assert summ["n_parameters"] == 100 and summ["n_logs"] == 1
+    assert sum(summ["n_best"].values()) == 1
+    assert abs(summ["diff"]["dct-grid"] - (r["dct"]["ll"] - r["grid"]["ll"])) < 1e-12
+    assert abs(summ["diff"]["rbf-dct"] - (r["rbf"]["ll"] - r["dct"]["ll"])) < 1e-12
+    for f in ("results.md", "fields.png", "fields_ll.png"):
+        assert (tmp_path / f).stat().st_size > 0

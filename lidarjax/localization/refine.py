@@ -30,12 +30,13 @@ from jaxtyping import Array, ArrayLike, Float
 
 from .._math import log1mexp
 from ..maps._dct import DCTMap
-from ..maps._dct import log_likelihood as dct_log_likelihood
+from ..maps._field import AbstractDecayRateField, field_log_likelihood
 from ..maps._grid import DecayRateMap
 from ..rays import HIT, SUB, check_finite_nonnegative, classify, from_scan
 
 __all__ = [
     "DCTScan",
+    "FieldScan",
     "refine_dct_scan_pose",
     "SmoothDecayRateField",
     "SmoothDecayRateScan",
@@ -219,21 +220,26 @@ class SmoothDecayRateScan(eqx.Module):
         return jnp.sum(self.ray_log_likelihoods(pose))
 
 
-class DCTScan(eqx.Module):
-    """Log-likelihood of one 2-D scan on a :class:`~lidarjax.maps.DCTMap`; ``obj(pose) -> []``
-    (nats), continuously differentiable in the pose (ch. 9: the DCT field is smooth, so no
-    blurring is needed), for :func:`refine_pose`.
+class FieldScan(eqx.Module):
+    """Log-likelihood of one 2-D scan on any decay-rate field; ``obj(pose) -> []`` (nats),
+    differentiable in the pose (world-from-sensor SE(2)), for :func:`refine_pose`.
+
+    Works with every :class:`~lidarjax.maps.AbstractDecayRateField`: a
+    :class:`~lidarjax.maps.DCTMap` (smooth, ch. 9: no blurring needed), a user's field, or
+    a :class:`~lidarjax.maps.DecayRateMap` (exact but only piecewise smooth in the pose: the
+    end-point rate jumps between cells, so prefer :class:`SmoothDecayRateScan` or a smooth
+    field there). Eqs. (9.5), (9.11), (9.12) via :func:`~lidarjax.maps.field_log_likelihood`.
 
     Attributes:
-        map: the DCT map.
+        field: the decay-rate field.
         azimuths: ``[b]`` beam angles (rad); ranges: ``[b]`` readings (m).
         r_min, r_max: range limits (m).
         ray_floor: per-ray log-likelihood floor (nats) or None; a floor keeps beams whose end
-            points leave the map box (``lambda = 0`` there) from making the objective
+            points leave a field's box (``lambda = 0`` there) from making the objective
             ``-inf`` at a poor start pose.
     """
 
-    map: DCTMap
+    field: AbstractDecayRateField
     azimuths: Float[Array, " b"]
     ranges: Float[Array, " b"]
     r_min: float = eqx.field(static=True)
@@ -242,7 +248,7 @@ class DCTScan(eqx.Module):
 
     def __init__(
         self,
-        map: DCTMap,
+        field: AbstractDecayRateField,
         azimuths,
         ranges,
         r_min: float,
@@ -250,23 +256,31 @@ class DCTScan(eqx.Module):
         *,
         ray_floor: float | None = -10.0,
     ):
-        if not isinstance(map, DCTMap) or map.dim != 2:
-            raise ValueError("map must be a 2-D DCTMap")
-        self.azimuths, self.ranges = _check_scan(azimuths, ranges, r_min, r_max, map.coeffs.dtype)
-        self.map = map
+        if not isinstance(field, AbstractDecayRateField) or field.dim != 2:
+            raise ValueError(
+                f"field must be a 2-D AbstractDecayRateField, got {type(field).__name__}"
+            )
+        dtype = jnp.result_type(float)
+        self.azimuths, self.ranges = _check_scan(azimuths, ranges, r_min, r_max, dtype)
+        self.field = field
         self.r_min, self.r_max = float(r_min), float(r_max)
         self.ray_floor = None if ray_floor is None else float(ray_floor)
 
     def ray_log_likelihoods(self, pose: jaxlie.SE2) -> Float[Array, " b"]:
-        """Per-beam log-likelihoods at ``pose`` (Eqs. 9.5, 9.11, 9.12)."""
+        """Per-beam log-likelihoods at ``pose``."""
         rays = from_scan(pose, self.azimuths, self.ranges, self.r_min, self.r_max)
-        ll = dct_log_likelihood(self.map, rays)
+        ll = field_log_likelihood(self.field, rays)
         if self.ray_floor is not None:
             ll = jnp.maximum(ll, self.ray_floor)
         return ll
 
     def __call__(self, pose: jaxlie.SE2) -> Float[Array, ""]:
         return jnp.sum(self.ray_log_likelihoods(pose))
+
+
+DCTScan = FieldScan
+"""The scan objective on a :class:`~lidarjax.maps.DCTMap` (kept name; same class as
+:class:`FieldScan`)."""
 
 
 def _pose_at(pose0_vec, delta):
@@ -328,7 +342,7 @@ def smooth_fields(
 
 
 def refine_scan_pose(
-    fields: Sequence[SmoothDecayRateField],
+    fields: Sequence[SmoothDecayRateField | AbstractDecayRateField],
     azimuths: Float[ArrayLike, " b"],
     ranges: Float[ArrayLike, " b"],
     pose0: jaxlie.SE2,
@@ -339,8 +353,11 @@ def refine_scan_pose(
     **kwargs,
 ) -> tuple[jaxlie.SE2, optx.Solution]:
     """Coarse-to-fine :func:`refine_pose` of one scan: one optimisation per field (e.g.
-    :func:`smooth_fields` of a decay-rate map, coarse first), each started from the last
-    result. ``kwargs`` go to :class:`SmoothDecayRateScan`. Jit- and vmap-compatible.
+    :func:`smooth_fields` of a decay-rate map, or any
+    :class:`~lidarjax.maps.AbstractDecayRateField`s such as a user's fields of increasing
+    detail; coarse first), each started from the last result. Each stage's objective is a
+    :class:`SmoothDecayRateScan` for a :class:`SmoothDecayRateField` and a
+    :class:`FieldScan` otherwise; ``kwargs`` go to it. Jit- and vmap-compatible.
 
     Returns:
         The final pose and the last stage's ``Solution``.
@@ -349,7 +366,8 @@ def refine_scan_pose(
         raise ValueError("fields must not be empty")
     pose, sol = pose0, None
     for fld in fields:
-        obj = SmoothDecayRateScan(fld, azimuths, ranges, r_min, r_max, **kwargs)
+        scan_cls = SmoothDecayRateScan if isinstance(fld, SmoothDecayRateField) else FieldScan
+        obj = scan_cls(fld, azimuths, ranges, r_min, r_max, **kwargs)
         pose, sol = refine_pose(obj, pose, max_steps=max_steps)
     return pose, sol
 
@@ -368,7 +386,7 @@ def refine_dct_scan_pose(
     ray_floor: float | None = -10.0,
 ) -> tuple[jaxlie.SE2, optx.Solution]:
     """Scan matching on a DCT map (ch. 9): coarse-to-fine :func:`refine_pose` of one 2-D
-    scan with :class:`DCTScan` on :meth:`~lidarjax.maps.DCTMap.smoothed` copies of the map
+    scan with :class:`FieldScan` on :meth:`~lidarjax.maps.DCTMap.smoothed` copies of the map
     (Gaussian widths in m, coarse first; the last stage should be 0, the map itself).
     The stages run as one ``lax.scan`` (one compiled refinement); the whole call is
     compiled once per scan size and schedule (``eqx.filter_jit``); vmappable over scans.
@@ -385,7 +403,7 @@ def refine_dct_scan_pose(
 
     def stage(pose_params, sigma):
         # one compiled refinement, scanned over the blur widths
-        obj = DCTScan(map.smoothed(sigma), azimuths, ranges, r_min, r_max, ray_floor=ray_floor)
+        obj = FieldScan(map.smoothed(sigma), azimuths, ranges, r_min, r_max, ray_floor=ray_floor)
         pose, sol = refine_pose(obj, jaxlie.SE2(pose_params), max_steps=max_steps)
         return pose.parameters(), sol
 

@@ -41,7 +41,13 @@ from jaxtyping import Array, ArrayLike, Float
 
 from ..rays import HIT, SUB, RayBatch, is_concrete
 from ..raytrace import GridSpec
-from ._field import AbstractDecayRateField, clip_to_box, combine_log_likelihood, map_chunks
+from ._field import (
+    AbstractDecayRateField,
+    clip_to_box,
+    combine_log_likelihood,
+    map_chunks,
+    trace_length,
+)
 from ._grid import DecayRateMap
 
 METHODS = ("auto", "paper", "spectral", "quadrature")
@@ -373,14 +379,6 @@ def _depth_quadrature(coeffs, st, vt, length, nodes, weights):
 
 # --------------------------------------------------------------------------------------
 # clipping rays to the box and the log-likelihood
-
-
-def trace_length(rays: RayBatch) -> Float[Array, "*batch"]:
-    """Range up to which each ray's optical depth is needed: ``r`` (HIT), ``r_min`` (SUB,
-    Eq. 9.11), ``r_max`` (SUP, Eq. 9.12)."""
-    return jnp.where(
-        rays.kind == HIT, rays.ranges, jnp.where(rays.kind == SUB, rays.r_min, rays.r_max)
-    )
 
 
 def _segment(m: DCTMap, origin, direction, length):

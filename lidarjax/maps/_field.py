@@ -53,6 +53,7 @@ __all__ = [
     "field_log_likelihood",
     "fit",
     "map_chunks",
+    "trace_length",
 ]
 
 
@@ -152,6 +153,14 @@ def map_chunks(fn: Callable, args: tuple, chunk_size: int, *, checkpoint: bool =
 # the generic forward model
 
 
+def trace_length(rays: RayBatch) -> Float[Array, "*batch"]:
+    """Range up to which each ray's optical depth is needed: ``r`` (HIT), ``r_min`` (SUB,
+    Eq. 9.11), ``r_max`` (SUP, Eq. 9.12)."""
+    return jnp.where(
+        rays.kind == HIT, rays.ranges, jnp.where(rays.kind == SUB, rays.r_min, rays.r_max)
+    )
+
+
 def combine_log_likelihood(kind, rate_at_end, depth):
     """Log-likelihood of rays from their end-point decay rate and optical depth:
     ``log lambda(end) - S`` (HIT, Eq. 9.5), ``log(1 - exp(-S))`` (SUB, Eq. 9.11), ``-S``
@@ -198,7 +207,7 @@ def field_log_likelihood(
     flat = rays.flatten()
     if flat.ranges.shape[0] == 0:
         return jnp.zeros(rays.shape, flat.origins.dtype)
-    length = flat.trace_lengths()
+    length = trace_length(flat)
     r_end = jnp.where(flat.kind == HIT, flat.ranges, 0.0)  # no inf end points (SUP)
 
     def chunk(o, d, ell, r, k):

@@ -34,3 +34,10 @@ def test_readme_examples_run():
     assert np.all(np.isfinite(np.asarray(ns["ll_dct"])))
     matched = np.asarray(ns["matched"].translation())
     assert np.linalg.norm(matched - ns["log"].poses[ns["s"], :2]) < 0.05
+    # bring your own decay-rate field
+    bumps, bumps0, patch = ns["bumps"], ns["bumps0"], ns["patch"]
+    ll_b = np.asarray(ns["maps"].field_log_likelihood(bumps, patch))
+    ll_b0 = np.asarray(ns["maps"].field_log_likelihood(bumps0, patch))
+    assert np.all(np.isfinite(ll_b)) and ll_b.sum() > ll_b0.sum() + 0.1 * ll_b.size
+    assert int(ns["sol_b"].stats["num_steps"]) > 1
+    assert np.all(np.isfinite(np.asarray(ns["pose_b"].parameters())))

@@ -13,6 +13,12 @@ lambda``, the integral by the midpoint rule with nodes at most half a cell apart
 :func:`refine_scan_pose` runs it coarse to fine over a schedule of blur widths (default
 0.3, 0.15, 0.05 m; on the Intel map an unblurred last stage has spurious local optima a
 few cm from the global one, a 0.05 m blur removes them).
+
+:class:`FieldScan` is the same scan objective for any
+:class:`~lidarjax.maps.AbstractDecayRateField` (a DCT map, a user's field, a grid map) via
+the generic forward model :func:`~lidarjax.maps.field_log_likelihood`;
+:func:`refine_scan_pose` accepts a coarse-to-fine sequence of such fields and
+:func:`refine_dct_scan_pose` builds one from a DCT map's ``smoothed`` copies.
 """
 
 from __future__ import annotations

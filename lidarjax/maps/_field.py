@@ -236,7 +236,8 @@ class AbstractQuadratureField(AbstractDecayRateField):
     (exact for fields that are polynomials of degree ``< 2 n`` along rays; otherwise choose
     enough nodes for the finest detail of the field along the longest chord).
 
-    :meth:`parameters` leaves the box out of the fit.
+    :meth:`parameters` leaves the box out of the fit. Construct subclasses with keyword
+    arguments: the box attributes come first in the dataclass field order.
 
     Attributes:
         lower: ``[d]`` lower box corner (m).

@@ -7,6 +7,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -80,6 +82,7 @@ def test_posterior_corridor_small(tmp_path):
         assert (tmp_path / f).stat().st_size > 0
 
 
+@pytest.mark.slow
 def test_pose_likelihood_small(tmp_path):
     # CI-sized: one small log, two odd scans, all beams, 20 sample poses per metric.
     res = run_experiment(
@@ -115,6 +118,7 @@ def test_pose_likelihood_small(tmp_path):
         assert (tmp_path / f).stat().st_size > 0
 
 
+@pytest.mark.slow
 def test_dct_maps_small(tmp_path):
     """Section 9.5 on one log at one resolution with few rays: the table structure and the
     DCT map beating both occupancy baselines in likelihood (Table 9.3). Scan matching is
@@ -143,6 +147,7 @@ def test_dct_maps_small(tmp_path):
         assert (tmp_path / f).stat().st_size > 0
 
 
+@pytest.mark.slow
 def test_decay_rate_fields_small(tmp_path):
     """Grid vs DCT vs the user-defined RBF field on one log at L = 10 with few rays: the
     results structure, equal parameter counts, and the DCT map beating the grid map in

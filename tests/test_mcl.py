@@ -54,6 +54,7 @@ def test_mcl_localizes_real_segment(intel, model):
     assert dead_err.mean() > 2 * err.mean()
 
 
+@pytest.mark.slow
 def test_mcl_experiment_small(tmp_path):
     res = run_experiment(
         "mcl",

@@ -121,6 +121,7 @@ def test_scan_likelihood_gradient_matches_finite_differences():
     scan = SmoothDecayRateScan(SmoothDecayRateField(m, 0.3), az, ranges, 0.0, 8.0)
     p0 = np.array([0.13, -0.21, 0.37])
 
+    @jax.jit
     def f(v):
         return scan(jaxlie.SE2.from_xy_theta(v[0], v[1], v[2]))
 

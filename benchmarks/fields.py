@@ -53,7 +53,6 @@ import argparse
 import json
 import os
 import platform
-import statistics
 import sys
 import tempfile
 import time
@@ -72,6 +71,7 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 from custom_field import patch_rays, rbf_field_like
+from dct import time_call as timed  # noqa: E402  (benchmarks/ is on sys.path)
 
 from lidarjax import maps
 from lidarjax.raytrace import GridSpec, accumulate
@@ -109,20 +109,6 @@ def machine_info() -> dict:
         "load_average_start": list(os.getloadavg()),
         "noise_note": "shared 2-core machine; other processes may have been running",
     }
-
-
-def timed(fn, repeats: int):
-    """``(first_s, median_s, warm_times, out)``: one call (compilation + run), then
-    ``repeats`` warm calls, each ended with ``jax.block_until_ready``."""
-    t = time.perf_counter()
-    out = jax.block_until_ready(fn())
-    first = time.perf_counter() - t
-    warm = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        out = jax.block_until_ready(fn())
-        warm.append(time.perf_counter() - t)
-    return first, statistics.median(warm), warm, out
 
 
 def max_abs_diff(a, b) -> dict:

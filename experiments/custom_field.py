@@ -82,6 +82,7 @@ def patch_rays(name: str, n_rays: int, *, size: float = 10.0, seed: int = 0):
     """``(train, test, lower)``: up to ``n_rays`` HIT rays each from even / odd scans that
     end in the ``size`` x ``size`` m patch with the most end points (1 m aligned)."""
     import jaxlie
+    from dct_maps import densest_patch
 
     from lidarjax.datasets import fetch, load_carmen
     from lidarjax.rays import HIT, RayBatch, from_scan
@@ -97,14 +98,7 @@ def patch_rays(name: str, n_rays: int, *, size: float = 10.0, seed: int = 0):
     )
     ends = np.asarray(rays.origins + rays.ranges[..., None] * rays.directions)
     hit = np.asarray(rays.kind) == HIT
-    pts = ends[hit]
-    lo = np.floor(pts.min(0))
-    edges = [np.arange(lo[k], np.ceil(pts[:, k].max()) + 2) for k in (0, 1)]
-    hist, _, _ = np.histogram2d(pts[:, 0], pts[:, 1], bins=edges)
-    k = int(round(size))
-    if min(hist.shape) >= k:
-        win = np.lib.stride_tricks.sliding_window_view(hist, (k, k)).sum(axis=(-1, -2))
-        lo = lo + np.array(np.unravel_index(int(np.argmax(win)), win.shape), float)
+    lo = densest_patch(ends[hit], size)  # the patch of experiments/dct_maps.py
     inside = hit & np.all((ends >= lo) & (ends <= lo + size), axis=-1)
     scan = np.arange(log.n_scans)[:, None] + np.zeros(inside.shape[1], int)
     rng = np.random.default_rng(seed)

@@ -286,8 +286,11 @@ class AbstractQuadratureField(AbstractDecayRateField):
         half = 0.5 * (t1 - t0)
         t = (t0 + half)[:, None] + half[:, None] * x[None, :]  # [n K]
         pts = origins[:, None, :] + t[..., None] * directions[:, None, :]
-        # the nodes lie inside the box up to rounding; rate_in_box, not decay_rate, so that
-        # a node a rounding error outside the box is not dropped
+        # The nodes lie inside the box up to rounding: clip them into it (so a node a
+        # rounding error outside is not dropped, and a ray that misses the box, whose
+        # nodes all sit at its origin with weight 0, never shows the user's function a
+        # far-away point) and call rate_in_box directly.
+        pts = jnp.clip(pts, self.lower, upper)
         return half * jnp.sum(self.rate_in_box(pts) * w, axis=-1)
 
     def parameters(self) -> PyTree:

@@ -13,6 +13,8 @@ from ._kitti import load_kitti_times as load_kitti_times
 from ._pcd import PointCloud as PointCloud
 from ._pcd import read_pcd as read_pcd
 from ._pcd import write_pcd as write_pcd
+from ._polygons import random_polygon as random_polygon
+from ._polygons import simulate_polygon_scan as simulate_polygon_scan
 from ._registry import REGISTRY as REGISTRY
 from ._registry import available as available
 from ._registry import data_dirs as data_dirs

@@ -8,6 +8,11 @@ from ._maps import kl_to_gaussian as kl_to_gaussian
 from ._maps import map_rmse as map_rmse
 from ._maps import p_ref as p_ref
 from ._maps import p_ref_rmse as p_ref_rmse
+from ._polyline import area_ratio as area_ratio
+from ._polyline import explained_fraction as explained_fraction
+from ._polyline import polygon_area as polygon_area
+from ._polyline import ray_rmse as ray_rmse
+from ._polyline import star_polygon as star_polygon
 
 __all__ = [
     "p_ref",
@@ -17,4 +22,9 @@ __all__ = [
     "inverse_kl",
     "kl_to_gaussian",
     "gaussian_log_density",
+    "ray_rmse",
+    "explained_fraction",
+    "polygon_area",
+    "star_polygon",
+    "area_ratio",
 ]

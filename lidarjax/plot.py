@@ -61,3 +61,51 @@ def plot_grid_stats(
     if title:
         fig.suptitle(title)
     return fig
+
+
+def plot_polyline_scan(
+    ax,
+    origin_xy: np.ndarray,
+    endpoints_xy: np.ndarray,
+    reflected: np.ndarray,
+    polylines: list[np.ndarray],
+    closed: list[bool] | None = None,
+    *,
+    ray_stride: int = 2,
+    title: str = "",
+):
+    """A 2-D scan with extracted polylines, like Figures 10.1 and 10.3.
+
+    Every ``ray_stride``-th reflected ray is drawn as a thin red line with its endpoint,
+    no-return rays in grey, the polylines in blue with their vertices.
+
+    Args:
+        ax: a matplotlib ``Axes``.
+        origin_xy: ``[2]`` sensor position (m).
+        endpoints_xy: ``[K 2]`` ray endpoints (m; for no-returns, the point at the reported
+            range).
+        reflected: ``[K]`` bool, HIT rays.
+        polylines: list of ``[m 2]`` vertex arrays (m).
+        closed: per polyline, whether it is closed (default: all open).
+        ray_stride: draw every n-th ray.
+        title: axes title.
+    """
+    o = np.asarray(origin_xy, float)
+    e = np.asarray(endpoints_xy, float)
+    refl = np.asarray(reflected, bool)
+    for k in range(0, len(e), max(1, int(ray_stride))):
+        c, lw = ("tab:red", 0.3) if refl[k] else ("0.75", 0.3)
+        ax.plot([o[0], e[k, 0]], [o[1], e[k, 1]], color=c, lw=lw, zorder=1)
+    ax.plot(e[refl, 0], e[refl, 1], ".", color="tab:red", ms=1.5, zorder=2)
+    closed = [False] * len(polylines) if closed is None else closed
+    for pl, c in zip(polylines, closed):
+        p = np.asarray(pl, float)
+        if c:
+            p = np.vstack([p, p[:1]])
+        ax.plot(p[:, 0], p[:, 1], "-o", color="tab:blue", lw=1.2, ms=2.5, zorder=3)
+    ax.plot(*o, "ks", ms=4, zorder=4)
+    ax.set_aspect("equal")
+    n = sum(len(p) for p in polylines)
+    ax.set_title(f"{title} (J = {n})" if title else f"J = {n}", fontsize=9)
+    ax.tick_params(labelsize=7)
+    return ax

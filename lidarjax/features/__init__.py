@@ -1,4 +1,5 @@
-"""Feature extraction from lidar scans: polylines (PLE / PLE+, dissertation ch. 10)."""
+"""Feature extraction from lidar scans: polylines (PLE / PLE+, dissertation ch. 10) and the
+heuristic baselines of section 10.5 (Visvalingam, iterative endpoint fit, split-and-merge)."""
 
 from ._polyline import AIC as AIC
 from ._polyline import AbstractStoppingCriterion as AbstractStoppingCriterion
@@ -8,9 +9,14 @@ from ._polyline import PolylineExtraction as PolylineExtraction
 from ._polyline import PolylineMap as PolylineMap
 from ._polyline import PolylineOptimization as PolylineOptimization
 from ._polyline import PolylineStats as PolylineStats
+from ._polyline import default_plus_solver as default_plus_solver
 from ._polyline import extract_polylines as extract_polylines
 from ._polyline import is_full_revolution as is_full_revolution
 from ._polyline import optimize_polylines as optimize_polylines
+from ._polyline_baselines import iterative_endpoint_fit as iterative_endpoint_fit
+from ._polyline_baselines import point_segment_distance as point_segment_distance
+from ._polyline_baselines import split_and_merge as split_and_merge
+from ._polyline_baselines import visvalingam as visvalingam
 
 __all__ = [
     "PolylineMap",
@@ -22,6 +28,11 @@ __all__ = [
     "AIC",
     "extract_polylines",
     "optimize_polylines",
+    "default_plus_solver",
     "PolylineOptimization",
     "is_full_revolution",
+    "visvalingam",
+    "iterative_endpoint_fit",
+    "split_and_merge",
+    "point_segment_distance",
 ]

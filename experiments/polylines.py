@@ -1,0 +1,554 @@
+"""Polyline extraction from 2-D scans (dissertation ch. 10): Figure 10.4, Table 10.2 and
+Figure 10.3 with PLE, PLE+ and the heuristic baselines VVL, IEF and SAM.
+
+Real data: ``scans_per_log`` scans drawn at random (seeded per log, indices recorded) from
+each shared CARMEN log, in the sensor frame, no-returns (readings at or beyond the log's
+usable range) as SUP rays. Simulation: as many full-revolution 360-ray scans of random
+star-shaped polygons with 3, 4, 5, 6, 12, 36 or 180 vertices (cycled), angular noise 0.2 deg
+and radial noise 0.03 m (section 10.5).
+
+For every vertex budget ``J``:
+
+- PLE (:func:`lidarjax.features.extract_polylines`, ``l_max`` 1 m, ``d_rm`` 0.5 m) and PLE+
+  (:func:`lidarjax.features.optimize_polylines`), batched over the scans of a dataset;
+- VVL on PLE's initial polylines, IEF and SAM on the reflected endpoints (max-range readings
+  removed), each with the same ``J_max``.
+
+Metrics (section 10.5, :mod:`lidarjax.metrics`): RMSE of the ray radii over rays that are
+reflected and intersect the polylines, ``f`` = rays intersected / rays reflected, and for
+simulated scans the area ratio ``a`` against the ground-truth polygon. Mean and standard
+error over scans. Timing: seconds per scan, one scan per call (warm), at ``timing_J``.
+Also PLE+ (Levenberg–Marquardt on Eq. 10.4) against the paper's Nelder–Mead on the true
+objective for a few simulated scans.
+
+Writes ``results.json``, ``results.md``, ``fig10_4a.png`` (real), ``fig10_4b.png``
+(simulated) and ``fig10_3.png`` (all methods on one office scan) into Hydra's output folder.
+E.g. ``python experiments/polylines.py logs=[intel] scans_per_log=5 J=[10,20]``.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+import zlib
+from pathlib import Path
+
+import hydra
+import jax
+import jax.numpy as jnp
+import jaxlie
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from hydra.core.hydra_config import HydraConfig  # noqa: E402
+from omegaconf import DictConfig, OmegaConf  # noqa: E402
+from scipy.optimize import minimize  # noqa: E402
+from tqdm import tqdm  # noqa: E402
+
+from lidarjax import features as F  # noqa: E402
+from lidarjax import metrics  # noqa: E402
+from lidarjax.datasets import (  # noqa: E402
+    fetch,
+    load_carmen,
+    random_polygon,
+    simulate_polygon_scan,
+)
+from lidarjax.plot import plot_polyline_scan  # noqa: E402
+from lidarjax.rays import HIT, RayBatch, from_scan  # noqa: E402
+
+METHODS = ("VVL", "IEF", "SAM", "PLE", "PLE+")
+COLORS = {"VVL": "tab:orange", "IEF": "tab:green", "SAM": "tab:purple", "PLE": "tab:blue",
+          "PLE+": "tab:red"}  # fmt: skip
+# Table 10.2 (MATLAB, one 2.5 GHz Xeon core): mean seconds per scan.
+PAPER_SECONDS = {
+    "real": {20: {"VVL": 0.056, "IEF": 0.27, "SAM": 28, "PLE": 1.4, "PLE+": 2.3},
+             50: {"VVL": 0.050, "IEF": 1.12, "SAM": 27, "PLE": 1.3, "PLE+": 6.9}},
+    "simulated": {20: {"VVL": 0.037, "IEF": 0.38, "SAM": 103, "PLE": 2.3, "PLE+": 11},
+                  50: {"VVL": 0.037, "IEF": 1.59, "SAM": 102, "PLE": 2.2, "PLE+": 72}},
+}  # fmt: skip
+
+
+# ----------------------------------------------------------------------------- data
+
+
+class Dataset:
+    """Scans of one kind (one log, or the simulation) with equal ray counts."""
+
+    def __init__(self, name, az, ranges, r_max, closed, polygons=None, indices=None):
+        self.name = name
+        self.az = np.asarray(az, float)
+        self.ranges = np.asarray(ranges, float)  # [S K]
+        self.r_max = float(r_max)
+        self.closed = bool(closed)
+        self.polygons = polygons
+        self.indices = indices
+        self.rays = from_scan(jaxlie.SE2.identity(), self.az, self.ranges, 0.0, self.r_max)
+        self.reflected = np.asarray(self.rays.kind) == HIT  # [S K]
+        dirs = np.stack([np.cos(self.az), np.sin(self.az)], -1)
+        self.endpoints = self.ranges[..., None] * dirs  # [S K 2]
+
+    @property
+    def n(self) -> int:
+        return self.ranges.shape[0]
+
+    def scan_rays(self, i: int) -> RayBatch:
+        return jax.tree.map(lambda x: x[i] if jnp.ndim(x) else x, self.rays)
+
+
+def real_dataset(name: str, cfg) -> Dataset:
+    log = load_carmen(fetch(name))
+    rng = np.random.default_rng([int(cfg.seed), zlib.crc32(name.encode())])
+    idx = np.sort(rng.choice(log.n_scans, size=min(cfg.scans_per_log, log.n_scans), replace=False))
+    r = np.minimum(log.ranges_m[idx], log.usable_range_m)  # no-returns: SUP at r_max
+    return Dataset(name, log.azimuths_rad, r, log.usable_range_m, False, indices=idx.tolist())
+
+
+def sim_dataset(cfg, n_scans: int) -> Dataset:
+    s = cfg.simulation
+    polys, ranges, az = [], [], None
+    for i in range(n_scans):
+        n = int(s.polygon_sizes[i % len(s.polygon_sizes)])
+        poly = random_polygon(n, seed=int(cfg.seed) * 100_003 + i,
+                              radius_range_m=tuple(s.radius_range_m))  # fmt: skip
+        az, r = simulate_polygon_scan(
+            poly,
+            n_rays=int(s.n_rays),
+            angular_sigma_rad=float(np.deg2rad(s.angular_sigma_deg)),
+            radial_sigma_m=float(s.radial_sigma_m),
+            seed=int(cfg.seed) * 100_003 + i,
+        )
+        polys.append(poly)
+        ranges.append(r)
+    return Dataset("simulated", az, np.stack(ranges), np.inf, True, polygons=polys)
+
+
+# ----------------------------------------------------------------------------- methods
+
+
+def _index(tree, i):
+    return jax.tree.map(lambda x: x[i], tree)
+
+
+def baselines(ds: Dataset, i: int, J: int, chains, closed) -> dict:
+    """VVL / IEF / SAM results ``(polylines, closed)`` for scan ``i``."""
+    pts = ds.endpoints[i]
+    refl_pts = pts[ds.reflected[i]]
+    out = {}
+    if chains:
+        n_closed = sum(closed)
+        out["VVL"] = F.visvalingam(pts, chains, closed, max(J, 3 * n_closed))
+    else:
+        out["VVL"] = ([], [])
+    if len(refl_pts) >= 2:
+        out["IEF"] = F.iterative_endpoint_fit(refl_pts, ds.closed, J)
+        out["SAM"] = F.split_and_merge(refl_pts, ds.closed, J)
+    else:
+        out["IEF"] = out["SAM"] = ([], [])
+    return out
+
+
+def run_all(ds: Dataset, J: int, cfg) -> dict:
+    """Every method on every scan of ``ds`` at budget ``J``: polylines and metrics."""
+    k = ds.ranges.shape[1]
+    init = F.extract_polylines(
+        ds.rays, max_vertices=k, l_max_m=cfg.l_max_m, d_rm_m=cfg.d_rm_m, closed=ds.closed
+    )
+    ple = F.extract_polylines(
+        ds.rays, max_vertices=J, l_max_m=cfg.l_max_m, d_rm_m=cfg.d_rm_m, closed=ds.closed
+    )
+    plus = F.optimize_polylines(ple, ds.rays)
+    expected = {
+        "PLE": np.asarray(ple.map.expected_ranges(ds.rays)),
+        "PLE+": np.asarray(plus.map.expected_ranges(ds.rays)),
+    }
+    results = {m: [] for m in cfg.methods}
+    for i in range(ds.n):
+        chains, closed = _index(init.map, i).to_chains()
+        base = baselines(ds, i, J, chains, closed)
+        for m in cfg.methods:
+            if m in ("PLE", "PLE+"):
+                mp = _index(ple.map if m == "PLE" else plus.map, i)
+                pls, cl = mp.to_polylines()
+                exp = expected[m][i]
+            else:
+                pls, cl = base[m]
+                exp = np.asarray(
+                    F.PolylineMap.from_polylines(pls, cl).expected_ranges(ds.scan_rays(i))
+                )
+            results[m].append(score(ds, i, pls, cl, exp))
+    return results
+
+
+def score(ds: Dataset, i: int, pls, cl, expected) -> dict:
+    refl = ds.reflected[i]
+    out = {
+        "J": int(sum(len(p) for p in pls)),
+        "rmse_m": metrics.ray_rmse(ds.ranges[i], expected, refl),
+        "f": metrics.explained_fraction(expected, refl),
+        "polylines": [np.asarray(p).tolist() for p in pls],
+        "closed": list(map(bool, cl)),
+    }
+    if ds.polygons is not None:
+        verts = np.concatenate(pls) if pls else np.zeros((0, 2))
+        try:
+            out["a"] = metrics.area_ratio(ds.polygons[i], verts)
+        except ValueError:
+            out["a"] = None  # fewer than 3 vertices, or the sensor outside the estimate
+    return out
+
+
+def summarize(per_scan: list[dict], key: str) -> dict:
+    vals = np.array([s[key] for s in per_scan if s.get(key) is not None], float)
+    finite = vals[np.isfinite(vals)]
+    n = len(finite)
+    return {
+        "mean": float(finite.mean()) if n else None,
+        "se": float(finite.std(ddof=1) / np.sqrt(n)) if n > 1 else None,
+        "n": n,
+        "n_undefined": len(per_scan) - n,
+    }
+
+
+# ----------------------------------------------------------------------------- timing
+
+
+def _timed(fn, *args):
+    t = time.perf_counter()
+    out = fn(*args)
+    jax.block_until_ready(out)
+    return time.perf_counter() - t, out
+
+
+def time_methods(ds: Dataset, J: int, n_scans: int, cfg) -> dict:
+    """Median/mean seconds per scan, one scan per call, after a warm-up call per shape."""
+    k = ds.ranges.shape[1]
+
+    def ple(r):
+        return F.extract_polylines(
+            r, max_vertices=J, l_max_m=cfg.l_max_m, d_rm_m=cfg.d_rm_m, closed=ds.closed
+        )
+
+    def init(r):
+        return F.extract_polylines(
+            r, max_vertices=k, l_max_m=cfg.l_max_m, d_rm_m=cfg.d_rm_m, closed=ds.closed
+        )
+
+    def ple_plus(r):
+        return F.optimize_polylines(ple(r), r)
+
+    times = {m: [] for m in METHODS}
+    scans = list(range(min(n_scans, ds.n)))
+    r0 = ds.scan_rays(scans[0])
+    _timed(ple, r0), _timed(ple_plus, r0), _timed(init, r0)  # compile
+    for i in scans:
+        r = ds.scan_rays(i)
+        times["PLE"].append(_timed(ple, r)[0])
+        times["PLE+"].append(_timed(ple_plus, r)[0])
+        t_init, init_res = _timed(init, r)
+        chains, closed = init_res.map.to_chains()
+        pts = ds.endpoints[i]
+        refl_pts = pts[ds.reflected[i]]
+        if chains:
+            n_closed = sum(closed)
+            t, _ = _timed(F.visvalingam, pts, chains, closed, max(J, 3 * n_closed))
+            times["VVL"].append(t + t_init)  # VVL includes building the initial polylines
+        if len(refl_pts) >= 2:
+            times["IEF"].append(_timed(F.iterative_endpoint_fit, refl_pts, ds.closed, J)[0])
+            times["SAM"].append(_timed(F.split_and_merge, refl_pts, ds.closed, J)[0])
+    return {
+        m: {"mean_s": float(np.mean(v)), "median_s": float(np.median(v)), "n": len(v)}
+        for m, v in times.items()
+        if v
+    }
+
+
+# ----------------------------------------------------------------------------- Nelder-Mead
+
+
+def _np_first_hit(dirs, segs):
+    if len(segs) == 0:
+        return np.full(len(dirs), np.inf)
+    a = segs[:, 0][None]
+    e = (segs[:, 1] - segs[:, 0])[None]
+    d = dirs[:, None]
+    den = d[..., 0] * e[..., 1] - d[..., 1] * e[..., 0]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (a[..., 0] * e[..., 1] - a[..., 1] * e[..., 0]) / den
+        u = (a[..., 0] * d[..., 1] - a[..., 1] * d[..., 0]) / den
+    ok = (np.abs(den) > 1e-14) & (t > 0) & (u >= -1e-12) & (u <= 1 + 1e-12)
+    return np.where(ok, t, np.inf).min(axis=1)
+
+
+def nelder_mead_vs_lm(ds: Dataset, cfg) -> list[dict]:
+    """PLE+ (LM) against scipy's Nelder–Mead on the true Eq. (10.4) objective, same
+    parametrisation (interior vertices free, end vertices along their ray)."""
+    nm = cfg.nelder_mead
+    out = []
+    dirs = np.stack([np.cos(ds.az), np.sin(ds.az)], -1)
+    d_rm2 = float(cfg.d_rm_m) ** 2
+    for i in range(min(int(nm.n_scans), ds.n)):
+        rays = ds.scan_rays(i)
+        ple = F.extract_polylines(rays, max_vertices=int(nm.J), l_max_m=cfg.l_max_m,
+                                  d_rm_m=cfg.d_rm_m, closed=ds.closed)  # fmt: skip
+        t_lm, plus = _timed(F.optimize_polylines, ple, rays)
+        t_lm, plus = _timed(F.optimize_polylines, ple, rays)  # warm
+        chains, closed = ple.map.to_chains()
+        v0 = np.asarray(ple.map.vertices)
+        refl = ds.reflected[i]
+        r = ds.ranges[i]
+
+        layout = []  # (slot, is_end)
+        for ch, c in zip(chains, closed):
+            for pos, s in enumerate(ch):
+                layout.append((int(s), (not c) and pos in (0, len(ch) - 1)))
+
+        def unpack(x, layout=layout, v0=v0):
+            v = v0.copy()
+            j = 0
+            for s, end in layout:
+                if end:
+                    v[s] = x[j] * dirs[s]
+                    j += 1
+                else:
+                    v[s] = x[j : j + 2]
+                    j += 2
+            return v
+
+        x0 = np.concatenate(
+            [[np.linalg.norm(v0[s])] if end else v0[s] for s, end in layout]
+        ).astype(float)
+
+        def segs_of(v, chains=chains, closed=closed):
+            s = []
+            for ch, c in zip(chains, closed):
+                idx = list(ch) + ([ch[0]] if c else [])
+                s += [(v[a], v[b]) for a, b in zip(idx[:-1], idx[1:])]
+            return np.array(s)
+
+        def objective(x, refl=refl, r=r):
+            t = _np_first_hit(dirs, segs_of(unpack(x)))
+            hit = refl & np.isfinite(t)
+            return float(np.sum(np.where(hit, (r - np.where(hit, t, 0)) ** 2, 0)[refl])
+                         + d_rm2 * np.sum(refl & ~hit))  # fmt: skip
+
+        t0 = time.perf_counter()
+        res = minimize(objective, x0, method="Nelder-Mead",
+                       options={"maxfev": int(nm.max_evaluations), "xatol": 1e-7,
+                                "fatol": 1e-12, "adaptive": True})  # fmt: skip
+        t_nm = time.perf_counter() - t0
+        n_params = len(x0)
+        out.append(
+            {
+                "scan": i,
+                "n_params": n_params,
+                "objective_ple": objective(x0),
+                "objective_lm": float(
+                    objective(
+                        np.concatenate(
+                            [
+                                [np.linalg.norm(np.asarray(plus.map.vertices)[s])]
+                                if end
+                                else np.asarray(plus.map.vertices)[s]
+                                for s, end in layout
+                            ]
+                        )
+                    )  # fmt: skip
+                ),
+                "objective_nm": float(res.fun),
+                "seconds_lm": t_lm,
+                "seconds_nm": t_nm,
+                "nm_evaluations": int(res.nfev),
+            }
+        )
+    return out
+
+
+# ----------------------------------------------------------------------------- output
+
+
+def _fmt(s: dict | None, scale=1.0, digits=1) -> str:
+    if not s or s["mean"] is None:
+        return "–"
+    se = f" ± {s['se'] * scale:.{digits}f}" if s["se"] is not None else ""
+    return f"{s['mean'] * scale:.{digits}f}{se}"
+
+
+def tables(summary: dict) -> str:
+    lines = []
+    for kind, title in (("real", "Real scans (Figure 10.4a)"),
+                        ("simulated", "Simulated scans (Figure 10.4b)")):  # fmt: skip
+        if kind not in summary["accuracy"]:
+            continue
+        acc = summary["accuracy"][kind]
+        methods = list(next(iter(acc.values())).keys())
+        lines += [f"### {title}", "", "RMSE of the ray radii (mm, mean ± standard error):", ""]
+        lines += ["| J | " + " | ".join(methods) + " |", "|---" * (len(methods) + 1) + "|"]
+        for J, row in acc.items():
+            lines.append(f"| {J} | " + " | ".join(_fmt(row[m]["rmse_m"], 1e3) for m in methods)
+                         + " |")  # fmt: skip
+        lines += ["", "f = rays intersected / rays reflected (mean ± standard error):", ""]
+        lines += ["| J | " + " | ".join(methods) + " |", "|---" * (len(methods) + 1) + "|"]
+        for J, row in acc.items():
+            lines.append(f"| {J} | " + " | ".join(_fmt(row[m]["f"], 1, 3) for m in methods)
+                         + " |")  # fmt: skip
+        if kind == "simulated":
+            lines += ["", "a = area ratio against the ground-truth polygon:", ""]
+            lines += ["| J | " + " | ".join(methods) + " |", "|---" * (len(methods) + 1) + "|"]
+            for J, row in acc.items():
+                lines.append(f"| {J} | " + " | ".join(_fmt(row[m]["a"], 1, 3) for m in methods)
+                             + " |")  # fmt: skip
+        lines.append("")
+    if summary.get("timing"):
+        lines += ["### Mean seconds per scan (Table 10.2; paper: MATLAB, one Xeon core)", ""]
+        lines += ["| data | J | " + " | ".join(METHODS) + " |", "|---" * (len(METHODS) + 2) + "|"]
+        for kind, per_j in summary["timing"].items():
+            for J, row in per_j.items():
+                paper = PAPER_SECONDS.get(kind, {}).get(int(J), {})
+                cells = []
+                for m in METHODS:
+                    ours = f"{row[m]['mean_s']:.4f}" if m in row else "–"
+                    cells.append(f"{ours} ({paper[m]})" if m in paper else ours)
+                lines.append(f"| {kind} | {J} | " + " | ".join(cells) + " |")
+        lines.append("")
+    if summary.get("nelder_mead"):
+        lines += ["### PLE+: Levenberg–Marquardt vs Nelder–Mead (Eq. 10.4 objective, m²)", ""]
+        lines += ["| scan | params | PLE | LM | NM | LM s | NM s | NM evals |",
+                  "|---|---|---|---|---|---|---|---|"]  # fmt: skip
+        for r in summary["nelder_mead"]:
+            lines.append(
+                f"| {r['scan']} | {r['n_params']} | {r['objective_ple']:.5f} | "
+                f"{r['objective_lm']:.5f} | {r['objective_nm']:.5f} | {r['seconds_lm']:.3f} | "
+                f"{r['seconds_nm']:.2f} | {r['nm_evaluations']} |"
+            )
+        lines.append("")
+    return "\n".join(lines)
+
+
+def plot_accuracy(acc: dict, out: Path, kind: str, noise_m: float | None) -> None:
+    keys = ["rmse_m", "f"] + (["a"] if kind == "simulated" else [])
+    fig, axes = plt.subplots(1, len(keys), figsize=(4.2 * len(keys), 3.4))
+    Js = [int(j) for j in acc]
+    methods = list(next(iter(acc.values())).keys())
+    for ax, key in zip(axes, keys):
+        for m in methods:
+            mean = [acc[str(j)][m][key]["mean"] for j in Js]
+            se = [acc[str(j)][m][key]["se"] or 0.0 for j in Js]
+            scale = 1e3 if key == "rmse_m" else 1.0
+            y = np.array([np.nan if v is None else v * scale for v in mean])
+            ax.errorbar(Js, y, yerr=np.array(se) * scale, label=m, color=COLORS.get(m),
+                        marker="o", ms=3, capsize=2)  # fmt: skip
+        if key == "rmse_m" and noise_m:
+            ax.axhline(noise_m * 1e3, color="0.4", ls="--", lw=1)
+        ax.set_xlabel("J (vertices)")
+        ax.set_ylabel({"rmse_m": "RMSE (mm)", "f": "f", "a": "a"}[key])
+        if key == "rmse_m":
+            ax.set_yscale("log")
+    axes[0].legend(fontsize=8)
+    fig.suptitle(f"Polyline extraction accuracy, {kind} scans (mean ± s.e.)", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(out, dpi=130)
+    plt.close(fig)
+
+
+def plot_example(ds: Dataset, i: int, J: int, cfg, out: Path) -> dict:
+    """Figure 10.3: all methods on one scan."""
+    res = run_all(Dataset(ds.name, ds.az, ds.ranges[i : i + 1], ds.r_max, ds.closed), J, cfg)
+    methods = list(res)
+    fig, axes = plt.subplots(1, len(methods), figsize=(3.6 * len(methods), 3.8))
+    for ax, m in zip(np.atleast_1d(axes), methods):
+        s = res[m][0]
+        plot_polyline_scan(
+            ax, np.zeros(2), ds.endpoints[i], ds.reflected[i],
+            [np.asarray(p) for p in s["polylines"]], s["closed"],
+            title=f"{m}: RMSE {s['rmse_m'] * 1e3:.1f} mm, f {s['f']:.2f}",
+        )  # fmt: skip
+    fig.tight_layout()
+    fig.savefig(out, dpi=130)
+    plt.close(fig)
+    return {m: {k: res[m][0][k] for k in ("J", "rmse_m", "f")} for m in methods}
+
+
+# ----------------------------------------------------------------------------- main
+
+
+@hydra.main(config_path="../configs", config_name="polylines", version_base=None)
+def main(cfg: DictConfig) -> None:
+    jax.config.update("jax_enable_x64", bool(cfg.x64))
+    out = Path(HydraConfig.get().runtime.output_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    unknown = set(cfg.methods) - set(METHODS)
+    if unknown:
+        raise ValueError(f"methods: unknown {sorted(unknown)}; choose from {list(METHODS)}")
+    t0 = time.perf_counter()
+    real = [real_dataset(n, cfg) for n in tqdm(cfg.logs, desc="loading logs")]
+    n_sim = cfg.simulation.n_scans
+    n_sim = sum(d.n for d in real) if n_sim == "auto" else int(n_sim)
+    sim = sim_dataset(cfg, n_sim) if n_sim > 0 else None
+    summary: dict = {
+        "config": OmegaConf.to_container(cfg, resolve=True),
+        "scan_indices": {d.name: d.indices for d in real},
+        "n_scans": {"real": sum(d.n for d in real), "simulated": n_sim},
+        "accuracy": {},
+        "jax_version": jax.__version__,
+        "dtype": str(jnp.result_type(float)),
+    }
+    per_scan: dict = {}
+    groups = [("real", real)] + ([("simulated", [sim])] if sim is not None else [])
+    for kind, dsets in groups:
+        acc = {}
+        for J in tqdm(list(cfg.J), desc=f"{kind}: J"):
+            merged = {m: [] for m in cfg.methods}
+            for ds in dsets:
+                res = run_all(ds, int(J), cfg)
+                for m in cfg.methods:
+                    merged[m] += res[m]
+            per_scan.setdefault(kind, {})[str(J)] = {
+                m: [{k: v for k, v in s.items() if k not in ("polylines", "closed")}
+                    for s in merged[m]] for m in cfg.methods
+            }  # fmt: skip
+            acc[str(J)] = {
+                m: {k: summarize(merged[m], k) for k in ("rmse_m", "f", "a", "J")}
+                for m in cfg.methods
+            }
+        summary["accuracy"][kind] = acc
+        noise = float(cfg.simulation.radial_sigma_m) if kind == "simulated" else None
+        plot_accuracy(acc, out / ("fig10_4a.png" if kind == "real" else "fig10_4b.png"), kind,
+                      noise)  # fmt: skip
+    summary["timing"] = {}
+    for kind, dsets in groups:
+        summary["timing"][kind] = {}
+        for J in cfg.timing_J:
+            per = [time_methods(ds, int(J), max(1, int(cfg.timing_scans) // len(dsets)), cfg)
+                   for ds in dsets]  # fmt: skip
+            summary["timing"][kind][str(J)] = {
+                m: {"mean_s": float(np.mean([p[m]["mean_s"] for p in per if m in p])),
+                    "median_s": float(np.median([p[m]["median_s"] for p in per if m in p]))}
+                for m in METHODS if any(m in p for p in per)
+            }  # fmt: skip
+    if sim is not None and int(cfg.nelder_mead.n_scans) > 0:
+        summary["nelder_mead"] = nelder_mead_vs_lm(sim, cfg)
+    ex = next((d for d in real if d.name == cfg.example.log), real[0] if real else None)
+    if ex is not None:
+        i = (
+            int(np.argmax(ex.reflected.sum(1)))
+            if cfg.example.scan == "auto"
+            else int(list(ex.indices).index(int(cfg.example.scan)))
+        )
+        summary["example"] = {
+            "log": ex.name,
+            "scan": ex.indices[i],
+            "J": int(cfg.example.J),
+            "methods": plot_example(ex, i, int(cfg.example.J), cfg, out / "fig10_3.png"),
+        }
+    summary["runtime_s"] = time.perf_counter() - t0
+    (out / "results.json").write_text(json.dumps(summary, indent=2))
+    (out / "per_scan.json").write_text(json.dumps(per_scan))
+    md = tables(summary)
+    (out / "results.md").write_text(md)
+    print(md)
+
+
+if __name__ == "__main__":
+    main()

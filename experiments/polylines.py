@@ -246,14 +246,14 @@ def time_methods(ds: Dataset, J: int, n_scans: int, cfg) -> dict:
         r = ds.scan_rays(i)
         times["PLE"].append(_timed(ple, r)[0])
         times["PLE+"].append(_timed(ple_plus, r)[0])
-        t_init, init_res = _timed(init, r)
+        _, init_res = _timed(init, r)
         chains, closed = init_res.map.to_chains()
         pts = ds.endpoints[i]
         refl_pts = pts[ds.reflected[i]]
         if chains:
             n_closed = sum(closed)
             t, _ = _timed(F.visvalingam, pts, chains, closed, max(J, 3 * n_closed))
-            times["VVL"].append(t + t_init)  # VVL includes building the initial polylines
+            times["VVL"].append(t)  # without the initial polylines (shared with PLE)
         if len(refl_pts) >= 2:
             times["IEF"].append(_timed(F.iterative_endpoint_fit, refl_pts, ds.closed, J)[0])
             times["SAM"].append(_timed(F.split_and_merge, refl_pts, ds.closed, J)[0])
@@ -464,6 +464,11 @@ def plot_example(ds: Dataset, i: int, J: int, cfg, out: Path) -> dict:
             [np.asarray(p) for p in s["polylines"]], s["closed"],
             title=f"{m}: RMSE {s['rmse_m'] * 1e3:.1f} mm, f {s['f']:.2f}",
         )  # fmt: skip
+    pts = np.vstack([ds.endpoints[i][ds.reflected[i]], np.zeros((1, 2))])
+    lo, hi = pts.min(0) - 0.5, pts.max(0) + 0.5
+    for ax in np.atleast_1d(axes):  # same frame for all methods (SAM's vertices can fly off)
+        ax.set_xlim(lo[0], hi[0])
+        ax.set_ylim(lo[1], hi[1])
     fig.tight_layout()
     fig.savefig(out, dpi=130)
     plt.close(fig)

@@ -190,3 +190,41 @@ def test_decay_rate_fields_small(tmp_path):
     assert abs(summ["diff"]["rbf-dct"] - (r["rbf"]["ll"] - r["dct"]["ll"])) < 1e-12
     for f in ("results.md", "fields.png", "fields_ll.png"):
         assert (tmp_path / f).stat().st_size > 0
+
+
+@pytest.mark.slow
+def test_polylines_small(tmp_path):
+    """Chapter 10 on 3 Intel scans and 3 simulated polygons at J = 10 (Figure 10.4)."""
+    res = run_experiment(
+        "polylines",
+        tmp_path,
+        "logs=[intel]",
+        "scans_per_log=3",
+        "J=[10]",
+        "timing_J=[10]",
+        "simulation.n_scans=3",
+        "simulation.n_rays=180",
+        "timing_scans=2",
+        "nelder_mead.n_scans=1",
+        "nelder_mead.max_evaluations=300",
+    )
+    assert len(res["scan_indices"]["intel"]) == 3
+    assert res["n_scans"] == {"real": 3, "simulated": 3}
+    for kind in ("real", "simulated"):
+        acc = res["accuracy"][kind]["10"]
+        assert set(acc) == {"VVL", "IEF", "SAM", "PLE", "PLE+"}
+        for m, s in acc.items():
+            assert s["J"]["mean"] <= 10, (kind, m)
+            assert s["rmse_m"]["n"] + s["rmse_m"]["n_undefined"] == 3
+        # PLE+ only moves vertices: f is PLE's, and the RMSE does not grow
+        assert acc["PLE+"]["f"]["mean"] == acc["PLE"]["f"]["mean"]
+        assert acc["PLE+"]["rmse_m"]["mean"] <= acc["PLE"]["rmse_m"]["mean"]
+    sim = res["accuracy"]["simulated"]["10"]
+    assert all(sim[m]["a"]["n"] >= 1 for m in sim)
+    for m in ("VVL", "IEF", "SAM", "PLE", "PLE+"):
+        assert res["timing"]["real"]["10"][m]["mean_s"] > 0
+    (nm,) = res["nelder_mead"]
+    assert nm["objective_lm"] <= nm["objective_ple"] and nm["objective_nm"] <= nm["objective_ple"]
+    assert res["example"]["log"] == "intel" and res["example"]["methods"]["PLE"]["J"] <= 10
+    for f in ("results.md", "fig10_4a.png", "fig10_4b.png", "fig10_3.png"):
+        assert (tmp_path / f).stat().st_size > 0

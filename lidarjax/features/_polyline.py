@@ -374,6 +374,7 @@ class _State(eqx.Module):
     n_removed: Array
     steps: Array
     done: Array
+    stats: PolylineStats
 
 
 class _Scan(eqx.Module):
@@ -449,12 +450,17 @@ def _tree_update(tv, ti, err, leaves, size: int):
     leaves = jnp.clip(leaves, 0, k - 1)
     node = leaves + size
     tv = tv.at[node].set(err[leaves])
-    for _ in range(int(math.log2(size))):
+
+    def level(_, carry):
+        tv, ti, node = carry
         node = node // 2
         lft, rgt = 2 * node, 2 * node + 1
         left = tv[lft] <= tv[rgt]
         tv = tv.at[node].set(jnp.where(left, tv[lft], tv[rgt]))
         ti = ti.at[node].set(jnp.where(left, ti[lft], ti[rgt]))
+        return tv, ti, node
+
+    tv, ti, _ = jax.lax.fori_loop(0, int(math.log2(size)), level, (tv, ti, node))
     return tv, ti
 
 
@@ -490,6 +496,18 @@ def _apply(sc: _Scan, st: _State, j, d_rm2) -> _State:
     prv = jnp.where(pair, prv.at[partner].set(-1), prv)
     cur = jnp.where(mask, new_cur, st.cur)
     explained = jnp.where(mask & lose, False, st.explained)
+    n_gone = 1 + pair.astype(jnp.int32)
+    old = st.stats
+    stats = PolylineStats(
+        n_vertices=old.n_vertices - n_gone,
+        n_polylines=old.n_polylines - pair.astype(jnp.int32),
+        sse_m2=old.sse_m2 + e,
+        sse_explained_m2=old.sse_explained_m2
+        + jnp.sum(jnp.where(mask & explained, new_cur, 0.0))
+        - jnp.sum(jnp.where(mask & st.explained, st.cur, 0.0)),
+        n_explained=old.n_explained - jnp.sum(mask & lose & st.explained).astype(jnp.int32),
+        n_reflected=old.n_reflected,
+    )
     pos = st.n_removed
     order = st.order.at[pos].set(j)
     order_err = st.order_err.at[pos].set(e)
@@ -506,6 +524,7 @@ def _apply(sc: _Scan, st: _State, j, d_rm2) -> _State:
             s.order,
             s.order_err,
             s.n_removed,
+            s.stats,
         ),
         st,
         (
@@ -518,6 +537,7 @@ def _apply(sc: _Scan, st: _State, j, d_rm2) -> _State:
             order,
             order_err,
             pos + 1 + pair.astype(pos.dtype),
+            stats,
         ),
     )
 
@@ -554,8 +574,9 @@ def _initial_state(sc: _Scan, closed: bool, l_max, d_rm2) -> _State:
         n_removed=zero,
         steps=zero,
         done=jnp.zeros((), bool),
+        stats=None,
     )
-    return st
+    return eqx.tree_at(lambda s: s.stats, st, _stats(sc, st), is_leaf=lambda x: x is None)
 
 
 def _tree_size(k: int) -> int:
@@ -575,7 +596,7 @@ def _ple_one(sc: _Scan, closed: bool, l_max, d_rm, criteria) -> tuple:
     err = _removal_errors(sc, st, d_rm2)
     tv, ti = _tree_build(err, size)
     st = eqx.tree_at(lambda s: (s.err, s.tree_val, s.tree_idx), st, (err, tv, ti))
-    init_stats = _stats(sc, st)
+    init_stats = st.stats
 
     def cond(s: _State):
         return ~s.done & (s.steps < k)
@@ -584,26 +605,27 @@ def _ple_one(sc: _Scan, closed: bool, l_max, d_rm, criteria) -> tuple:
         j = s.tree_idx[1]
         e = s.tree_val[1]
         after = _apply(sc, s, j, d_rm2)
-        before_stats, after_stats = _stats(sc, s), _stats(sc, after)
         allowed = jnp.isfinite(e)
         for c in criteria:
-            allowed = allowed & c.allows(before_stats, after_stats)
-        new = jax.tree.map(lambda a, b: jnp.where(allowed, a, b), after, s)
-        # recompute only the errors the removal touched (Algorithm 1, line 20)
+            allowed = allowed & c.allows(s.stats, after.stats)
+        new = after  # reverted below unless allowed
+        # recompute only the errors the removal changed (Algorithm 1, line 20): the two
+        # neighbours of an interior vertex (and the third vertex of a closed polygon that
+        # shrinks to a triangle), or the new end vertex and its neighbour; the removed
+        # vertices get inf.
         p, n = s.prev[j], s.next[j]
         ps, ns = jnp.clip(p, 0, k - 1), jnp.clip(n, 0, k - 1)
-        touched = jnp.stack(
-            [
-                j,
-                jnp.where(n >= 0, ns, ps),
-                jnp.where(p >= 0, p, -1),
-                jnp.where(n >= 0, n, -1),
-                jnp.where(p >= 0, new.prev[ps], -1),
-                jnp.where(n >= 0, new.next[ns], -1),
-            ]
-        )
-        vals = jax.vmap(lambda t: _candidate(sc, new, t, d_rm2)[0])(touched)
-        vals = jnp.where(touched >= 0, vals, jnp.inf)
+        interior = (p >= 0) & (n >= 0)
+        start_end = (p < 0) & (n >= 0)
+        pair = ~interior & jnp.where(n >= 0, s.next[ns] < 0, s.prev[ps] < 0)
+        partner = jnp.where(n >= 0, n, p)
+        first = jnp.where(interior | ~start_end, p, n)
+        second = jnp.where(interior, n, jnp.where(start_end, s.next[ns], s.prev[ps]))
+        third = jnp.where(interior, new.prev[ps], -1)
+        redo = jnp.where(pair, -1, jnp.stack([first, second, third]))
+        vals = jax.vmap(lambda t: _candidate(sc, new, t, d_rm2)[0])(redo)
+        touched = jnp.concatenate([jnp.stack([j, jnp.where(pair, partner, -1)]), redo])
+        vals = jnp.concatenate([jnp.full(2, jnp.inf, vals.dtype), vals])
         # invalid entries scatter out of bounds (dropped), so they cannot race a real one
         err2 = new.err.at[jnp.where(touched >= 0, touched, k)].set(vals, mode="drop")
         tv2, ti2 = _tree_update(new.tree_val, new.tree_idx, err2, touched, size)
@@ -613,7 +635,7 @@ def _ple_one(sc: _Scan, closed: bool, l_max, d_rm, criteria) -> tuple:
 
     st = jax.lax.while_loop(cond, body, st)
     m = PolylineMap(sc.ends, jnp.where(st.alive, st.next, -1), st.alive)
-    return m, _stats(sc, st), init_stats, st.order, st.order_err, st.steps
+    return m, st.stats, init_stats, st.order, st.order_err, st.steps
 
 
 def _check_positive(x, name: str, allow_zero: bool = False):

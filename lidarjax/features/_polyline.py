@@ -28,7 +28,6 @@ errors are in m².
 from __future__ import annotations
 
 import abc
-import math
 from collections.abc import Sequence
 
 import equinox as eqx
@@ -296,7 +295,7 @@ class AbstractStoppingCriterion(eqx.Module):
 class MaxVertices(AbstractStoppingCriterion):
     """Remove vertices while the map has more than ``n`` (the paper's ``J_max``)."""
 
-    n: Int[ArrayLike, ""]
+    n: Int[Array, ""] = eqx.field(converter=lambda x: jnp.asarray(x, jnp.int32))
 
     def __check_init__(self):
         if is_concrete(self.n) and int(self.n) < 2:
@@ -309,7 +308,7 @@ class MaxVertices(AbstractStoppingCriterion):
 class MaxRMSE(AbstractStoppingCriterion):
     """Remove vertices while the RMSE of the ray radii stays at most ``rmse_m`` (m)."""
 
-    rmse_m: float
+    rmse_m: Float[Array, ""] = eqx.field(converter=jnp.asarray)
 
     def allows(self, before, after):
         return after.rmse_m <= self.rmse_m
@@ -319,7 +318,7 @@ class AIC(AbstractStoppingCriterion):
     """Akaike information criterion with known radial noise ``sigma_m`` (m): remove while
     ``AIC = 2 * 2J + Σ d² / σ²`` does not increase (two parameters per vertex)."""
 
-    sigma_m: float = 0.03
+    sigma_m: Float[Array, ""] = eqx.field(default=0.03, converter=jnp.asarray)
 
     def allows(self, before, after):
         def aic(s):
@@ -366,8 +365,8 @@ class _State(eqx.Module):
     cur: Array  # current squared residual per ray (d_rm² if reflected and unexplained)
     explained: Array
     err: Array
-    tree_val: Array
-    tree_idx: Array
+    tree_val: tuple[Array, ...]
+    tree_idx: tuple[Array, ...]
     n_polylines: Array
     order: Array
     order_err: Array
@@ -429,39 +428,43 @@ def _candidate(sc: _Scan, st: _State, j, d_rm2):
     return jnp.where(ok, e, jnp.inf), mask, new_cur, ~interior
 
 
-def _tree_build(err: Array, size: int):
-    big = jnp.full(size, jnp.inf, err.dtype).at[: err.shape[0]].set(err)
-    vals = [big]
-    idxs = [jnp.arange(size)]
-    while vals[-1].shape[0] > 1:
-        v, i = vals[-1], idxs[-1]
-        left = v[0::2] <= v[1::2]
-        vals.append(jnp.where(left, v[0::2], v[1::2]))
-        idxs.append(jnp.where(left, i[0::2], i[1::2]))
-    # heap layout: node 1 is the root, node size + i is leaf i
-    tv = jnp.concatenate([jnp.full(1, jnp.inf, err.dtype)] + vals[::-1])
-    ti = jnp.concatenate([jnp.zeros(1, jnp.int32)] + [i.astype(jnp.int32) for i in idxs[::-1]])
-    return tv, ti
+_FANOUT = 8  # children per node of the tournament tree
 
 
-def _tree_update(tv, ti, err, leaves, size: int):
-    """Set the given leaves to ``err[leaves]`` and repair their root paths: O(log n)."""
+def _tree_build(err: Array, levels: int):
+    """An indexed min tournament tree over ``err``: a ``_FANOUT``-ary tree of ``levels``
+    levels above the (padded) leaves. Each node holds the minimum of its subtree and the
+    leaf index where it sits (the lowest index on ties). Returns ``(values, indices)``,
+    tuples of per-level arrays from the root (size 1) to the leaves."""
+    size = _FANOUT**levels
+    v = jnp.full(size, jnp.inf, err.dtype).at[: err.shape[0]].set(err)
+    i = jnp.arange(size, dtype=jnp.int32)
+    vals, idxs = [v], [i]
+    for _ in range(levels):
+        v2 = vals[-1].reshape(-1, _FANOUT)
+        a = jnp.argmin(v2, axis=1)  # first minimum: the lowest leaf index wins ties
+        vals.append(jnp.take_along_axis(v2, a[:, None], 1)[:, 0])
+        idxs.append(jnp.take_along_axis(idxs[-1].reshape(-1, _FANOUT), a[:, None], 1)[:, 0])
+    return tuple(vals[::-1]), tuple(idxs[::-1])
+
+
+def _tree_update(tv, ti, err, leaves):
+    """Set the given leaves to ``err[leaves]`` and repair their root paths:
+    ``O(_FANOUT * log n)`` per leaf, all leaves at once."""
     k = err.shape[0]
     leaves = jnp.clip(leaves, 0, k - 1)
-    node = leaves + size
-    tv = tv.at[node].set(err[leaves])
-
-    def level(_, carry):
-        tv, ti, node = carry
-        node = node // 2
-        lft, rgt = 2 * node, 2 * node + 1
-        left = tv[lft] <= tv[rgt]
-        tv = tv.at[node].set(jnp.where(left, tv[lft], tv[rgt]))
-        ti = ti.at[node].set(jnp.where(left, ti[lft], ti[rgt]))
-        return tv, ti, node
-
-    tv, ti, _ = jax.lax.fori_loop(0, int(math.log2(size)), level, (tv, ti, node))
-    return tv, ti
+    tv, ti = list(tv), list(ti)
+    tv[-1] = tv[-1].at[leaves].set(err[leaves])
+    node = leaves
+    for lvl in range(len(tv) - 2, -1, -1):
+        node = node // _FANOUT
+        kids = node[:, None] * _FANOUT + jnp.arange(_FANOUT)  # [t F]
+        cv = tv[lvl + 1][kids]
+        a = jnp.argmin(cv, axis=1)
+        tv[lvl] = tv[lvl].at[node].set(jnp.take_along_axis(cv, a[:, None], 1)[:, 0])
+        tv_i = jnp.take_along_axis(ti[lvl + 1][kids], a[:, None], 1)[:, 0]
+        ti[lvl] = ti[lvl].at[node].set(tv_i)
+    return tuple(tv), tuple(ti)
 
 
 def _stats(sc: _Scan, st: _State) -> PolylineStats:
@@ -566,8 +569,8 @@ def _initial_state(sc: _Scan, closed: bool, l_max, d_rm2) -> _State:
         cur=cur,
         explained=alive,
         err=jnp.zeros(k, sc.ranges.dtype),
-        tree_val=jnp.zeros(1),
-        tree_idx=jnp.zeros(1, jnp.int32),
+        tree_val=(),
+        tree_idx=(),
         n_polylines=n_poly.astype(jnp.int32),
         order=jnp.full(k, -1, jnp.int32),
         order_err=jnp.full(k, jnp.inf, sc.ranges.dtype),
@@ -579,8 +582,11 @@ def _initial_state(sc: _Scan, closed: bool, l_max, d_rm2) -> _State:
     return eqx.tree_at(lambda s: s.stats, st, _stats(sc, st), is_leaf=lambda x: x is None)
 
 
-def _tree_size(k: int) -> int:
-    return 1 << max(1, (k - 1).bit_length())
+def _tree_levels(k: int) -> int:
+    levels = 1
+    while _FANOUT**levels < k:
+        levels += 1
+    return levels
 
 
 def _removal_errors(sc: _Scan, st: _State, d_rm2) -> Array:
@@ -590,25 +596,18 @@ def _removal_errors(sc: _Scan, st: _State, d_rm2) -> Array:
 
 def _ple_one(sc: _Scan, closed: bool, l_max, d_rm, criteria) -> tuple:
     k = sc.ranges.shape[0]
-    size = _tree_size(k)
+    levels = _tree_levels(k)
     d_rm2 = jnp.asarray(d_rm, sc.ranges.dtype) ** 2
     st = _initial_state(sc, closed, l_max, d_rm2)
     err = _removal_errors(sc, st, d_rm2)
-    tv, ti = _tree_build(err, size)
+    tv, ti = _tree_build(err, levels)
     st = eqx.tree_at(lambda s: (s.err, s.tree_val, s.tree_idx), st, (err, tv, ti))
     init_stats = st.stats
 
     def cond(s: _State):
         return ~s.done & (s.steps < k)
 
-    def body(s: _State) -> _State:
-        j = s.tree_idx[1]
-        e = s.tree_val[1]
-        after = _apply(sc, s, j, d_rm2)
-        allowed = jnp.isfinite(e)
-        for c in criteria:
-            allowed = allowed & c.allows(s.stats, after.stats)
-        new = after  # reverted below unless allowed
+    def commit(s: _State, after: _State, j) -> _State:
         # recompute only the errors the removal changed (Algorithm 1, line 20): the two
         # neighbours of an interior vertex (and the third vertex of a closed polygon that
         # shrinks to a triangle), or the new end vertex and its neighbour; the removed
@@ -621,17 +620,31 @@ def _ple_one(sc: _Scan, closed: bool, l_max, d_rm, criteria) -> tuple:
         partner = jnp.where(n >= 0, n, p)
         first = jnp.where(interior | ~start_end, p, n)
         second = jnp.where(interior, n, jnp.where(start_end, s.next[ns], s.prev[ps]))
-        third = jnp.where(interior, new.prev[ps], -1)
+        third = jnp.where(interior, after.prev[ps], -1)
         redo = jnp.where(pair, -1, jnp.stack([first, second, third]))
-        vals = jax.vmap(lambda t: _candidate(sc, new, t, d_rm2)[0])(redo)
+        vals = jax.vmap(lambda t: _candidate(sc, after, t, d_rm2)[0])(redo)
         touched = jnp.concatenate([jnp.stack([j, jnp.where(pair, partner, -1)]), redo])
         vals = jnp.concatenate([jnp.full(2, jnp.inf, vals.dtype), vals])
         # invalid entries scatter out of bounds (dropped), so they cannot race a real one
-        err2 = new.err.at[jnp.where(touched >= 0, touched, k)].set(vals, mode="drop")
-        tv2, ti2 = _tree_update(new.tree_val, new.tree_idx, err2, touched, size)
-        new = eqx.tree_at(lambda q: (q.err, q.tree_val, q.tree_idx), new, (err2, tv2, ti2))
-        new = jax.tree.map(lambda a, b: jnp.where(allowed, a, b), new, s)
-        return eqx.tree_at(lambda q: (q.steps, q.done), new, (s.steps + 1, ~allowed))
+        err = after.err.at[jnp.where(touched >= 0, touched, k)].set(vals, mode="drop")
+        tv, ti = _tree_update(after.tree_val, after.tree_idx, err, touched)
+        return eqx.tree_at(
+            lambda q: (q.err, q.tree_val, q.tree_idx, q.steps),
+            after,
+            (err, tv, ti, s.steps + 1),
+        )
+
+    def stop(s: _State, after: _State, j) -> _State:
+        return eqx.tree_at(lambda q: (q.steps, q.done), s, (s.steps + 1, jnp.ones((), bool)))
+
+    def body(s: _State) -> _State:
+        j = s.tree_idx[0][0]
+        e = s.tree_val[0][0]
+        after = _apply(sc, s, j, d_rm2)
+        allowed = jnp.isfinite(e)
+        for c in criteria:
+            allowed = allowed & c.allows(s.stats, after.stats)
+        return jax.lax.cond(allowed, commit, stop, s, after, j)
 
     st = jax.lax.while_loop(cond, body, st)
     m = PolylineMap(sc.ends, jnp.where(st.alive, st.next, -1), st.alive)
@@ -691,7 +704,7 @@ def _criteria_list(max_vertices, criteria) -> tuple[AbstractStoppingCriterion, .
     if max_vertices is not None:
         if isinstance(max_vertices, bool) or int(max_vertices) != max_vertices:
             raise ValueError(f"max_vertices must be an integer, got {max_vertices!r}")
-        cs.append(MaxVertices(jnp.asarray(int(max_vertices), jnp.int32)))
+        cs.append(MaxVertices(int(max_vertices)))
     for c in cs:
         if not isinstance(c, AbstractStoppingCriterion):
             raise ValueError(
@@ -711,7 +724,8 @@ def _scan_arrays(rays: RayBatch) -> _Scan:
 
 
 @eqx.filter_jit
-def _extract(sc: _Scan, closed: bool, l_max, d_rm, criteria):
+def _extract(rays: RayBatch, closed: bool, l_max, d_rm, criteria):
+    sc = _scan_arrays(rays)
     f = lambda s: _ple_one(s, closed, l_max, d_rm, criteria)  # noqa: E731
     for _ in range(sc.ranges.ndim - 1):
         f = jax.vmap(f)
@@ -763,9 +777,9 @@ def extract_polylines(
     if closed is None:
         closed = is_full_revolution(rays)
     dtype = rays.ranges.dtype
-    sc = _scan_arrays(rays)
+    d_rm = np.asarray(d_rm_m, dtype)
     m, stats, init, order, order_err, steps = _extract(
-        sc, bool(closed), jnp.asarray(l_max_m, dtype), jnp.asarray(d_rm_m, dtype), cs
+        rays, bool(closed), np.asarray(l_max_m, dtype), d_rm, cs
     )
     return PolylineExtraction(
         map=m,
@@ -774,7 +788,7 @@ def extract_polylines(
         removal_order=order,
         removal_error=order_err,
         n_steps=steps,
-        d_rm_m=jnp.asarray(d_rm_m, dtype),
+        d_rm_m=jnp.asarray(d_rm),
     )
 
 
@@ -790,10 +804,11 @@ class PolylineOptimization(eqx.Module):
         map: the optimised :class:`PolylineMap` (same topology and slots as the input).
         sse_before_m2: ``Σ d²`` over the explained rays before optimisation (m²).
         sse_after_m2: the same after optimisation (never larger).
-        step_fraction: the accepted fraction of the least-squares step (1 unless the
-            solution changed which rays the map explains or raised the true error).
-        result: the optimistix result code of the least-squares solve.
-        n_steps: solver steps taken.
+        step_fraction: the accepted fraction of the last round's least-squares step (1
+            unless that solution changed which rays the map explains or raised the true
+            error).
+        result: the optimistix result code of the last round's solve.
+        n_steps: solver steps taken over all rounds.
     """
 
     map: PolylineMap
@@ -804,6 +819,7 @@ class PolylineOptimization(eqx.Module):
     n_steps: Int[Array, "*scans"]
 
 
+_ANCHOR = 1e-3
 _FRACTIONS = (1.0, 0.5, 0.25, 0.125, 0.0625, 0.03125, 0.0)
 
 
@@ -814,7 +830,7 @@ def _true_sse(m: PolylineMap, sc: _Scan):
     return jnp.sum(d2), hit
 
 
-def _plus_one(m: PolylineMap, sc: _Scan, solver, max_steps: int, n_params: int):
+def _plus_one(m: PolylineMap, sc: _Scan, solver, max_steps: int, n_params: int, rounds: int):
     k = m.vertices.shape[0]
     act = m.active
     succ = jnp.where(act, m.successor, -1)
@@ -834,50 +850,68 @@ def _plus_one(m: PolylineMap, sc: _Scan, solver, max_steps: int, n_params: int):
     )
     end_p = is_end[slot] & real
     dir_p = sc.dirs[slot]
-    # the association of PLE, held fixed: ray -> first segment it hits
-    t0, seg = _first_hits(m, jnp.broadcast_to(sc.origin, sc.dirs.shape), sc.dirs)
-    use = sc.refl & jnp.isfinite(t0)
-    seg = jnp.clip(seg, 0, k - 1)
-    pa, pb = param_of[seg], param_of[jnp.clip(succ[seg], 0, k - 1)]
-    # end vertices move along the ray of their slot: vertex = origin + t * dir
-    v0 = m.vertices[slot]
-    y0 = (v0, jnp.einsum("jd,jd->j", v0 - sc.origin, dir_p))
+    origins = jnp.broadcast_to(sc.origin, sc.dirs.shape)
 
     def positions(y):
+        # end vertices move along the ray of their slot: vertex = origin + t * dir
         xy, t_end = y
         return jnp.where(end_p[:, None], sc.origin + t_end[:, None] * dir_p, xy)
 
     def residuals(y, args):
+        pa, pb, use, p_start = args
         p = positions(y)
         a, b = p[pa], p[pb]
         e = b - a
         den = _cross(sc.dirs, e)
         ok = use & (jnp.abs(den) > 1e-12)
         rhat = _cross(a - sc.origin, e) / jnp.where(ok, den, 1.0)
-        return jnp.where(ok, sc.ranges - rhat, 0.0)
+        # a weak anchor (1e-3 per m moved: 1e-6 m² per m² in the objective) keeps the
+        # directions that leave Σ d² unchanged (a vertex sliding along a straight wall)
+        # determined
+        anchor = _ANCHOR * jnp.where(real[:, None], p - p_start, 0.0).reshape(-1)
+        return jnp.concatenate([jnp.where(ok, sc.ranges - rhat, 0.0), anchor])
 
-    sol = optx.least_squares(residuals, solver, y0, max_steps=max_steps, throw=False)
-    p0 = positions(y0)
-    step = jnp.where(real[:, None], positions(sol.value) - p0, 0.0)
     sse0, hit0 = _true_sse(m, sc)
-
-    def trial(frac):
-        p = p0 + frac * step
-        verts = m.vertices.at[jnp.where(real, slot, k)].set(p, mode="drop")
-        sse, hit = _true_sse(PolylineMap(verts, m.successor, m.active), sc)
-        ok = jnp.all(hit == hit0) & (sse <= sse0) & jnp.all(jnp.isfinite(p))
-        return ok, sse, verts
-
     fracs = jnp.asarray(_FRACTIONS, m.vertices.dtype)
-    oks, sses, verts = jax.vmap(trial)(fracs)
-    best = jnp.argmax(oks)  # the first (largest) accepted fraction; 0 always qualifies
-    out = PolylineMap(verts[best], m.successor, m.active)
-    return out, sse0, sses[best], fracs[best], sol.result, sol.stats["num_steps"]
+
+    def one_round(carry, _):
+        verts, sse_cur, n_steps, _ = carry
+        cur = PolylineMap(verts, m.successor, m.active)
+        # association: ray -> the segment it hits first, held fixed during the solve
+        t0, seg = _first_hits(cur, origins, sc.dirs)
+        use = sc.refl & jnp.isfinite(t0)
+        seg = jnp.clip(seg, 0, k - 1)
+        pa, pb = param_of[seg], param_of[jnp.clip(succ[seg], 0, k - 1)]
+        v0 = verts[slot]
+        y0 = (v0, jnp.einsum("jd,jd->j", v0 - sc.origin, dir_p))
+        p0 = positions(y0)
+        sol = optx.least_squares(
+            residuals, solver, y0, args=(pa, pb, use, p0), max_steps=max_steps, throw=False
+        )
+        step = jnp.where(real[:, None], positions(sol.value) - p0, 0.0)
+
+        def trial(frac):
+            p = p0 + frac * step
+            vv = verts.at[jnp.where(real, slot, k)].set(p, mode="drop")
+            sse, hit = _true_sse(PolylineMap(vv, m.successor, m.active), sc)
+            ok = jnp.all(hit == hit0) & (sse <= sse_cur) & jnp.all(jnp.isfinite(p))
+            return ok, sse, vv
+
+        oks, sses, vvs = jax.vmap(trial)(fracs)
+        best = jnp.argmax(oks)  # the first (largest) accepted fraction; 0 always qualifies
+        sse_new = jnp.where(oks[best], sses[best], sse_cur)
+        carry = (vvs[best], sse_new, n_steps + sol.stats["num_steps"], fracs[best])
+        return carry, sol.result
+
+    init = (m.vertices, sse0, jnp.zeros((), jnp.int32), jnp.ones((), m.vertices.dtype))
+    (verts, sse, n_steps, frac), results = jax.lax.scan(one_round, init, None, length=rounds)
+    out = PolylineMap(verts, m.successor, m.active)
+    return out, sse0, sse, frac, jax.tree.map(lambda x: x[-1], results), n_steps
 
 
 @eqx.filter_jit
-def _optimize(m: PolylineMap, sc: _Scan, solver, max_steps: int, n_params: int):
-    f = lambda mm, s: _plus_one(mm, s, solver, max_steps, n_params)  # noqa: E731
+def _optimize(m: PolylineMap, sc: _Scan, solver, max_steps: int, n_params: int, rounds: int):
+    f = lambda mm, s: _plus_one(mm, s, solver, max_steps, n_params, rounds)  # noqa: E731
     for _ in range(sc.ranges.ndim - 1):
         f = jax.vmap(f)
     return f(m, sc)
@@ -899,27 +933,34 @@ def optimize_polylines(
     rays: RayBatch,
     *,
     solver: optx.AbstractLeastSquaresSolver | None = None,
-    max_steps: int = 100,
+    max_steps: int = 10,
+    rounds: int = 5,
 ) -> PolylineOptimization:
     """PLE+: move the vertices to maximise the scan likelihood (Eq. 10.4, section 10.4.3).
 
-    Each reflected ray keeps the segment PLE assigned to it (the first one it hits), and
-    its residual ``r_k - r̂_k`` is measured to that segment's line, which makes Eq. (10.4)
-    a smooth least-squares problem, solved with ``solver`` (default
+    With each reflected ray held on the segment it hits first (the ray-to-segment
+    association), its residual ``r_k - r̂_k`` measured to that segment's line makes
+    Eq. (10.4) a smooth least-squares problem, solved with ``solver`` (default
     :func:`default_plus_solver`: Levenberg–Marquardt). Interior vertices move freely; the
     first and last vertex of an open polyline move along the axis of their own ray
-    (``2(J - I)`` unknowns for ``I`` open polylines). The solution is then checked with
-    the true first-intersection model: the largest step fraction in
-    ``(1, 1/2, ..., 1/32, 0)`` that keeps every explained ray explained (and no new one)
-    without raising ``Σ d²`` is accepted, so the likelihood never decreases and ``f`` is
-    unchanged. Batched over ``[*scans]`` with ``vmap``.
+    (``2(J - I)`` unknowns for ``I`` open polylines). A weak anchor term
+    (``1e-6 |Δv|²``) keeps directions that do not change ``Σ d²`` determined.
+
+    The solve runs for ``rounds`` rounds; each re-associates the rays with the current
+    map, solves, and checks the result with the true first-intersection model: the
+    largest step fraction in ``(1, 1/2, ..., 1/32, 0)`` that keeps exactly PLE's explained
+    rays explained without raising ``Σ d²`` is accepted. So the likelihood never
+    decreases and ``f`` is unchanged (the fixed association alone lets a line run past a
+    corner, which lowers the surrogate but raises the true error). Batched over
+    ``[*scans]`` with ``vmap``.
 
     Args:
         extraction: a :class:`PolylineExtraction` (or its map) of these rays, in the PLE
             layout (vertex slot ``k`` = endpoint of ray ``k``).
         rays: the ``[*scans K]`` rays the map was extracted from.
         solver: an optimistix least-squares solver.
-        max_steps: solver step budget.
+        max_steps: solver step budget per round.
+        rounds: association / solve / check rounds.
 
     Returns:
         A :class:`PolylineOptimization`.
@@ -937,11 +978,13 @@ def optimize_polylines(
         )
     if int(max_steps) < 1:
         raise ValueError(f"max_steps must be >= 1, got {max_steps}")
+    if int(rounds) < 1:
+        raise ValueError(f"rounds must be >= 1, got {rounds}")
     if solver is None:
         solver = default_plus_solver()
     n_active = int(jnp.max(m.n_vertices)) if m.active.size else 0
     n_params = max(8, -(-n_active // 8) * 8)  # bucket to limit recompiles
     out, s0, s1, frac, res, steps = _optimize(
-        m, _scan_arrays(rays), solver, int(max_steps), n_params
+        m, _scan_arrays(rays), solver, int(max_steps), n_params, int(rounds)
     )
     return PolylineOptimization(out, s0, s1, frac, res, steps)

@@ -216,6 +216,7 @@ def test_polylines_small(tmp_path):
         for m, s in acc.items():
             assert s["J"]["mean"] <= 10, (kind, m)
             assert s["rmse_m"]["n"] + s["rmse_m"]["n_undefined"] == 3
+            assert 0 <= s["f"]["mean"] <= 1 and s["rmse_common_m"]["n"] >= 1
         # PLE+ only moves vertices: f is PLE's, and the RMSE does not grow
         assert acc["PLE+"]["f"]["mean"] == acc["PLE"]["f"]["mean"]
         assert acc["PLE+"]["rmse_m"]["mean"] <= acc["PLE"]["rmse_m"]["mean"]

@@ -76,9 +76,9 @@ def test_explained_fraction_hand_values():
     reflected = np.array([True, True, True, True])
     assert explained_fraction(np.array([1.0, np.inf, np.inf, 2.0]), reflected) == 0.5
     assert explained_fraction(np.array([1.0, 2.0, 3.0, 4.0]), reflected) == 1.0
-    # Intersected rays count whether reflected or not: 3 intersected / 2 reflected.
-    expected = np.array([1.0, 2.0, 3.0, np.nan])
-    assert explained_fraction(expected, np.array([True, True, False, False])) == 1.5
+    # Only reflected rays count: an intersected no-return ray does not raise f above 1.
+    expected = np.array([1.0, np.inf, 3.0, np.nan])
+    assert explained_fraction(expected, np.array([True, True, False, False])) == 0.5
 
 
 def test_explained_fraction_validates_inputs():

@@ -43,3 +43,11 @@ def test_readme_examples_run():
     assert np.all(np.isfinite(ll_b)) and ll_b.sum() > ll_b0.sum() + 0.1 * ll_b.size
     assert int(ns["sol_b"].stats["num_steps"]) > 1
     assert np.all(np.isfinite(np.asarray(ns["pose_b"].parameters())))
+    # polylines (PLE / PLE+)
+    ple, plus, scan = ns["ple"], ns["plus"], ns["scan"]
+    assert int(ple.stats.n_vertices) <= 20 and len(ns["polylines"]) == int(ple.stats.n_polylines)
+    assert float(plus.sse_after_m2) <= float(plus.sse_before_m2)
+    r_hat = np.asarray(ns["r_hat"])
+    assert r_hat.shape == (180,)
+    explained = np.isfinite(r_hat) & (np.asarray(scan.kind) == 0)
+    assert explained.sum() == int(ple.stats.n_explained)

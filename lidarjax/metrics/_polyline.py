@@ -76,9 +76,12 @@ def ray_rmse(ranges: np.ndarray, expected: np.ndarray, reflected: np.ndarray) ->
 def explained_fraction(expected: np.ndarray, reflected: np.ndarray) -> float:
     """Fraction ``f`` of the scan explained by the polylines.
 
-    ``f`` is the number of rays intersected by the polylines (finite ``expected``, whether
-    reflected or not) divided by the number of rays reflected in the measured scan. It can
-    exceed 1 if the polylines also intersect max-range rays.
+    ``f`` is the number of reflected rays that intersect the polylines (finite
+    ``expected``) divided by the number of rays reflected in the measured scan, so
+    ``0 <= f <= 1``. Section 10.5 words it as "rays hypothetically intersected by the
+    polylines / rays actually reflected"; counting only reflected rays in the numerator is
+    how the authors' published evaluation computes it (their IEF, whose lines bridge the
+    no-return gaps, has f = 1, not more).
 
     Args:
         expected: ``[K]`` range (m) of each ray's intersection with the polylines;
@@ -86,7 +89,7 @@ def explained_fraction(expected: np.ndarray, reflected: np.ndarray) -> float:
         reflected: ``[K]`` bool, whether the ray was reflected.
 
     Returns:
-        ``f`` (dimensionless, ``>= 0``).
+        ``f`` (dimensionless, in ``[0, 1]``).
 
     Raises:
         TypeError: if ``reflected`` is not boolean.
@@ -99,7 +102,7 @@ def explained_fraction(expected: np.ndarray, reflected: np.ndarray) -> float:
     n_reflected = int(np.count_nonzero(m))
     if n_reflected == 0:
         raise ValueError("explained_fraction needs at least one reflected ray")
-    return int(np.count_nonzero(np.isfinite(e))) / n_reflected
+    return int(np.count_nonzero(np.isfinite(e) & m)) / n_reflected
 
 
 def _as_vertices(vertices: np.ndarray, name: str) -> np.ndarray:

@@ -43,7 +43,6 @@ import itertools
 import json
 import math
 import os
-import platform
 import statistics
 import sys
 import time
@@ -62,6 +61,7 @@ import jax.numpy as jnp
 import jaxlie
 import numpy as np
 import optimistix as optx
+from _machine import machine_info
 
 from lidarjax import maps
 from lidarjax.datasets import fetch, load_carmen
@@ -84,28 +84,7 @@ PAPER_CHUNK_ELEMENTS = 4_000_000
 
 
 def _machine() -> dict:
-    cpu_model = platform.processor() or platform.machine()
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    cpu_model = line.split(":", 1)[1].strip()
-                    break
-    except OSError:
-        pass
-    return {
-        "cpu_count": os.cpu_count(),
-        "cpu_model": cpu_model,
-        "platform": platform.platform(),
-        "python": platform.python_version(),
-        "jax": jax.__version__,
-        "numpy": np.__version__,
-        "optimistix": getattr(optx, "__version__", None),
-        "jax_backend": jax.default_backend(),
-        "dtype": str(jnp.result_type(float)),
-        "load_average_start": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
-        "noise_note": "shared 2-core machine; other processes may have been running",
-    }
+    return machine_info(optimistix=getattr(optx, "__version__", None))
 
 
 def time_call(fn, repeats: int):

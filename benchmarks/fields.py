@@ -52,7 +52,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import sys
 import tempfile
 import time
@@ -70,6 +69,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
+from _machine import machine_info as _machine_info
 from custom_field import patch_rays, rbf_field_like
 from dct import time_call as timed  # noqa: E402  (benchmarks/ is on sys.path)
 
@@ -87,28 +87,9 @@ TOL = 1e-4
 
 
 def machine_info() -> dict:
-    cpu = platform.machine()
-    try:
-        with open("/proc/cpuinfo") as f:
-            cpu = next(
-                (ln.split(":", 1)[1].strip() for ln in f if ln.startswith("model name")), cpu
-            )
-    except OSError:
-        pass
-    return {
-        "cpu_count": os.cpu_count(),
-        "cpu_model": cpu,
-        "platform": platform.platform(),
-        "python": platform.python_version(),
-        "jax": jax.__version__,
-        "equinox": getattr(eqx, "__version__", None),
-        "optimistix": getattr(optx, "__version__", None),
-        "numpy": np.__version__,
-        "jax_backend": jax.default_backend(),
-        "dtype": str(jnp.result_type(float)),
-        "load_average_start": list(os.getloadavg()),
-        "noise_note": "shared 2-core machine; other processes may have been running",
-    }
+    return _machine_info(
+        equinox=getattr(eqx, "__version__", None), optimistix=getattr(optx, "__version__", None)
+    )
 
 
 def max_abs_diff(a, b) -> dict:

@@ -66,7 +66,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import statistics
 import subprocess
 import sys
@@ -81,9 +80,9 @@ import jax
 
 jax.config.update("jax_enable_x64", True)  # before any array is created
 
-import jax.numpy as jnp  # noqa: E402
 import jaxlie  # noqa: E402
 import numpy as np  # noqa: E402
+from _machine import machine_info  # noqa: E402
 
 from benchmarks._numpy_ple import ple_numpy  # noqa: E402
 from lidarjax import rays as lr  # noqa: E402
@@ -201,28 +200,7 @@ def simulated_scans(n: int) -> Scans:
 
 
 def _machine() -> dict:
-    cpu_model = platform.processor() or platform.machine()
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    cpu_model = line.split(":", 1)[1].strip()
-                    break
-    except OSError:
-        pass
-    return {
-        "cpu_count": os.cpu_count(),
-        "cpu_model": cpu_model,
-        "platform": platform.platform(),
-        "python": platform.python_version(),
-        "jax": jax.__version__,
-        "numpy": np.__version__,
-        "jax_backend": jax.default_backend(),
-        "dtype": str(jnp.result_type(float)),
-        "xla_flags": os.environ.get("XLA_FLAGS", ""),
-        "load_average_start": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
-        "noise_note": "shared 2-core machine; other processes may have been running",
-    }
+    return machine_info(xla_flags=os.environ.get("XLA_FLAGS", ""))
 
 
 def _timed(fn, repeats: int) -> tuple[list[float], object]:

@@ -28,7 +28,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import resource
 import statistics
 import subprocess
@@ -48,6 +47,7 @@ if "--x64" in sys.argv:  # must happen before any array is created
 import jax.numpy as jnp
 import jaxlie
 import numpy as np
+from _machine import machine_info
 
 from benchmarks._numpy_reference import accumulate_numpy
 from lidarjax import rays as lr
@@ -454,26 +454,7 @@ def _subprocess(mode: str, quick: bool, n_rays: int | None = None) -> dict:
 
 
 def _machine() -> dict:
-    cpu_model = platform.processor() or platform.machine()
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    cpu_model = line.split(":", 1)[1].strip()
-                    break
-    except OSError:
-        pass
-    return {
-        "cpu_count": os.cpu_count(),
-        "cpu_model": cpu_model,
-        "platform": platform.platform(),
-        "python": platform.python_version(),
-        "jax": jax.__version__,
-        "numpy": np.__version__,
-        "jax_backend": jax.default_backend(),
-        "dtype": str(_float_dtype()),
-        "loadavg_at_start": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
-    }
+    return machine_info(dtype=str(_float_dtype()))
 
 
 def _fmt_rate(x: float) -> str:

@@ -367,7 +367,6 @@ class _State(eqx.Module):
     err: Array
     tree_val: tuple[Array, ...]
     tree_idx: tuple[Array, ...]
-    n_polylines: Array
     order: Array
     order_err: Array
     n_removed: Array
@@ -467,10 +466,10 @@ def _tree_update(tv, ti, err, leaves):
     return tuple(tv), tuple(ti)
 
 
-def _stats(sc: _Scan, st: _State) -> PolylineStats:
+def _stats(sc: _Scan, st: _State, n_polylines: Array) -> PolylineStats:
     return PolylineStats(
         n_vertices=jnp.sum(st.alive).astype(jnp.int32),
-        n_polylines=st.n_polylines.astype(jnp.int32),
+        n_polylines=n_polylines.astype(jnp.int32),
         sse_m2=jnp.sum(jnp.where(sc.refl, st.cur, 0.0)),
         sse_explained_m2=jnp.sum(jnp.where(st.explained, st.cur, 0.0)),
         n_explained=jnp.sum(st.explained).astype(jnp.int32),
@@ -523,7 +522,6 @@ def _apply(sc: _Scan, st: _State, j, d_rm2) -> _State:
             s.alive,
             s.cur,
             s.explained,
-            s.n_polylines,
             s.order,
             s.order_err,
             s.n_removed,
@@ -536,7 +534,6 @@ def _apply(sc: _Scan, st: _State, j, d_rm2) -> _State:
             alive,
             cur,
             explained,
-            st.n_polylines - pair.astype(st.n_polylines.dtype),
             order,
             order_err,
             pos + 1 + pair.astype(pos.dtype),
@@ -571,7 +568,6 @@ def _initial_state(sc: _Scan, closed: bool, l_max, d_rm2) -> _State:
         err=jnp.zeros(k, sc.ranges.dtype),
         tree_val=(),
         tree_idx=(),
-        n_polylines=n_poly.astype(jnp.int32),
         order=jnp.full(k, -1, jnp.int32),
         order_err=jnp.full(k, jnp.inf, sc.ranges.dtype),
         n_removed=zero,
@@ -579,7 +575,8 @@ def _initial_state(sc: _Scan, closed: bool, l_max, d_rm2) -> _State:
         done=jnp.zeros((), bool),
         stats=None,
     )
-    return eqx.tree_at(lambda s: s.stats, st, _stats(sc, st), is_leaf=lambda x: x is None)
+    stats = _stats(sc, st, n_poly)
+    return eqx.tree_at(lambda s: s.stats, st, stats, is_leaf=lambda x: x is None)
 
 
 def _tree_levels(k: int) -> int:

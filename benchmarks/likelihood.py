@@ -35,7 +35,6 @@ import argparse
 import json
 import math
 import os
-import platform
 import statistics
 import sys
 import time
@@ -49,6 +48,7 @@ import jax
 import jax.numpy as jnp
 import jaxlie
 import numpy as np
+from _machine import machine_info
 
 from lidarjax import maps
 from lidarjax.datasets import fetch, load_carmen
@@ -329,15 +329,7 @@ def main(argv=None) -> dict:
         print(f"{name} numpy reference: {rate:.3g} rays/s", flush=True)
 
     report = {
-        "machine": {
-            "cpu_count": os.cpu_count(),
-            "platform": platform.platform(),
-            "python": platform.python_version(),
-            "jax": jax.__version__,
-            "numpy": np.__version__,
-            "jax_backend": jax.default_backend(),
-            "dtype": str(jnp.result_type(float)),
-        },
+        "machine": machine_info(),
         "quick": args.quick,
         "setup": {
             "log": "intel",

@@ -29,7 +29,6 @@ import argparse
 import json
 import math
 import os
-import platform
 import statistics
 import sys
 import time
@@ -43,6 +42,7 @@ import jax
 import jax.numpy as jnp
 import jaxlie
 import numpy as np
+from _machine import machine_info
 
 from benchmarks._numpy_pf import NumpyParticleFilter, scan_log_likelihoods
 from lidarjax import maps
@@ -294,19 +294,11 @@ def main(argv=None) -> dict:
 
     s300 = per_count["300"]["jax"]["s_per_step"]
     report = {
-        "machine": {
-            "cpu_count": os.cpu_count(),
-            "platform": platform.platform(),
-            "python": platform.python_version(),
-            "jax": jax.__version__,
-            "numpy": np.__version__,
-            "jax_backend": jax.default_backend(),
-            "dtype": str(jnp.result_type(float)),
-            "numpy_dtype": "float64",
-            "load_average_start": list(load_start),
-            "load_average_end": list(os.getloadavg()),
-            "noise_note": "shared 2-core machine; other processes may have been running",
-        },
+        "machine": machine_info(
+            numpy_dtype="float64",
+            load_average_start=list(load_start),
+            load_average_end=list(os.getloadavg()),
+        ),
         "quick": quick,
         "setup": {
             "log": "intel",

@@ -778,7 +778,39 @@ def first_segment_hit(
     return tmin, jnp.where(jnp.isfinite(tmin), i, -1).astype(jnp.int32)
 
 
+def ray_plane(
+    origin: Float[Array, " d"],
+    direction: Float[Array, " d"],
+    support: Float[Array, " d"],
+    normal: Float[Array, " d"],
+) -> Float[Array, ""]:
+    """Signed distance along one ray to its intersection with an infinite plane (Eq. 11.1).
+
+    Solves ``n . (origin + t * direction - support) = 0`` for ``t``:
+    ``t = n . (support - origin) / (n . direction)``. Works in 2-D (a line) and 3-D. The
+    result is negative when the plane lies behind the ray start. A ray parallel to the
+    plane (``|n . v|`` below a few ulps of ``|n| |v|``) gives ``inf``; the gradient stays
+    finite there (double-``where``).
+
+    Args:
+        origin: ``[d]`` ray start ``s`` (m).
+        direction: ``[d]`` unit ray direction ``v``.
+        support: ``[d]`` any point ``x`` on the plane (m).
+        normal: ``[d]`` plane normal ``n`` (any length, not zero).
+
+    Returns:
+        Scalar ``t`` (m) or ``inf``.
+    """
+    den = jnp.sum(normal * direction)
+    scale = jnp.sqrt(jnp.sum(normal * normal) * jnp.sum(direction * direction))
+    tiny = jnp.finfo(den.dtype).tiny
+    ok = jnp.abs(den) > 64 * jnp.finfo(den.dtype).eps * jnp.maximum(scale, tiny)
+    t = jnp.sum(normal * (support - origin)) / jnp.where(ok, den, 1.0)
+    return jnp.where(ok, t, jnp.inf)
+
+
 __all__ = [
+    "ray_plane",
     "ray_segment",
     "first_segment_hit",
     "GridSpec",

@@ -19,6 +19,16 @@ from ._registry import REGISTRY as REGISTRY
 from ._registry import available as available
 from ._registry import data_dirs as data_dirs
 from ._registry import fetch as fetch
+from ._synpeb import ConvexPolyhedron as ConvexPolyhedron
+from ._synpeb import SynPEBScan as SynPEBScan
+from ._synpeb import SynPEBScene as SynPEBScene
+from ._synpeb import cast_rays as cast_rays
+from ._synpeb import load_synpeb_pcd as load_synpeb_pcd
+from ._synpeb import make_synpeb_scene as make_synpeb_scene
+from ._synpeb import simulate_synpeb_scan as simulate_synpeb_scan
+from ._synpeb import synpeb_scan as synpeb_scan
+from ._synpeb import synpeb_split as synpeb_split
+from ._synpeb import write_synpeb_pcd as write_synpeb_pcd
 from ._synthetic import OfficeWorld as OfficeWorld
 from ._synthetic import make_office as make_office
 from ._synthetic import simulate_scans as simulate_scans

@@ -1,6 +1,17 @@
-"""Feature extraction from lidar scans: polylines (PLE / PLE+, dissertation ch. 10) and the
-heuristic baselines of section 10.5 (Visvalingam, iterative endpoint fit, split-and-merge)."""
+"""Feature extraction from lidar scans: polylines (PLE / PLE+, dissertation ch. 10) with the
+heuristic baselines of section 10.5 (Visvalingam, iterative endpoint fit, split-and-merge),
+and planes (PPE, ch. 11) with the MSAC and PEAC-style baselines."""
 
+from ._plane import TETROMINOES as TETROMINOES
+from ._plane import PlaneFit as PlaneFit
+from ._plane import PlaneSegmentation as PlaneSegmentation
+from ._plane import default_plane_solver as default_plane_solver
+from ._plane import extract_planes as extract_planes
+from ._plane import extract_planes_reference as extract_planes_reference
+from ._plane import fit_planes as fit_planes
+from ._plane import linearized_plane_error as linearized_plane_error
+from ._plane import plane_error as plane_error
+from ._plane import plane_ranges as plane_ranges
 from ._polyline import AIC as AIC
 from ._polyline import AbstractStoppingCriterion as AbstractStoppingCriterion
 from ._polyline import MaxRMSE as MaxRMSE
@@ -35,4 +46,14 @@ __all__ = [
     "iterative_endpoint_fit",
     "split_and_merge",
     "point_segment_distance",
+    "plane_ranges",
+    "plane_error",
+    "PlaneFit",
+    "fit_planes",
+    "default_plane_solver",
+    "linearized_plane_error",
+    "TETROMINOES",
+    "PlaneSegmentation",
+    "extract_planes",
+    "extract_planes_reference",
 ]

@@ -1,5 +1,6 @@
-"""Evaluation measures from the dissertation: map RMSE in p_ref (section 9.5.1) and the
-pose-likelihood divergences of Eqs. (7.28), (7.29), (8.24)/(8.25)."""
+"""Evaluation measures from the dissertation: map RMSE in p_ref (section 9.5.1), the
+pose-likelihood divergences of Eqs. (7.28), (7.29), (8.24)/(8.25), the polyline metrics of
+section 10.5 and the plane-segmentation metrics of chapter 11 (Hoover scores, k, RMSE)."""
 
 from ._maps import dirac_divergence as dirac_divergence
 from ._maps import gaussian_log_density as gaussian_log_density
@@ -13,6 +14,10 @@ from ._polyline import explained_fraction as explained_fraction
 from ._polyline import polygon_area as polygon_area
 from ._polyline import ray_rmse as ray_rmse
 from ._polyline import star_polygon as star_polygon
+from ._segmentation import HooverScores as HooverScores
+from ._segmentation import hoover_scores as hoover_scores
+from ._segmentation import k_value as k_value
+from ._segmentation import segmentation_rmse as segmentation_rmse
 
 __all__ = [
     "p_ref",
@@ -27,4 +32,8 @@ __all__ = [
     "polygon_area",
     "star_polygon",
     "area_ratio",
+    "HooverScores",
+    "hoover_scores",
+    "k_value",
+    "segmentation_rmse",
 ]

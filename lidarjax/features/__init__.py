@@ -6,12 +6,16 @@ from ._plane import TETROMINOES as TETROMINOES
 from ._plane import PlaneFit as PlaneFit
 from ._plane import PlaneSegmentation as PlaneSegmentation
 from ._plane import default_plane_solver as default_plane_solver
+from ._plane import estimate_noise as estimate_noise
 from ._plane import extract_planes as extract_planes
+from ._plane import extract_planes_path as extract_planes_path
 from ._plane import extract_planes_reference as extract_planes_reference
 from ._plane import fit_planes as fit_planes
 from ._plane import linearized_plane_error as linearized_plane_error
 from ._plane import plane_error as plane_error
 from ._plane import plane_ranges as plane_ranges
+from ._plane_baselines import msac_planes as msac_planes
+from ._plane_baselines import peac_planes as peac_planes
 from ._polyline import AIC as AIC
 from ._polyline import AbstractStoppingCriterion as AbstractStoppingCriterion
 from ._polyline import MaxRMSE as MaxRMSE
@@ -56,4 +60,8 @@ __all__ = [
     "PlaneSegmentation",
     "extract_planes",
     "extract_planes_reference",
+    "extract_planes_path",
+    "estimate_noise",
+    "msac_planes",
+    "peac_planes",
 ]

@@ -42,7 +42,7 @@ from __future__ import annotations
 import dataclasses
 import heapq
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import equinox as eqx
 import jax
@@ -64,7 +64,9 @@ __all__ = [
     "PlaneSegmentation",
     "extract_planes",
     "extract_planes_reference",
+    "extract_planes_path",
     "linearized_plane_error",
+    "estimate_noise",
 ]
 
 # Step kinds of the greedy loop.
@@ -212,8 +214,8 @@ def fit_planes(
     (a plane cannot pass through the sensor it is seen from), so
     ``r̂_k = (1 - a . (s_k - o)) / (a . v_k)`` and the residuals ``r_k - r̂_k`` are smooth in
     ``a``. The initial guess is the PCA plane of the endpoints; Gauss–Newton (or
-    ``solver``) then minimises the exact residuals. All sets are solved in one ``vmap`` ped call: pad the
-    sets to a common ``n`` and pass ``mask``.
+    ``solver``) then minimises the exact residuals. All sets are solved in one
+    ``vmap`` ped call: pad the sets to a common ``n`` and pass ``mask``.
 
     Args:
         origins: ``[*b, n, 3]`` ray starts (m).
@@ -373,6 +375,38 @@ def _merge_py(a: tuple, b: tuple) -> tuple:
 def _stats_error_py(s: tuple) -> float:
     """:func:`_stats_error` of one cluster in plain Python floats."""
     W, m0, m1, m2, c00, c01, c02, c11, c12, c22 = s
+    A00 = c11 * c22 - c12 * c12
+    A01 = c02 * c12 - c01 * c22
+    A02 = c01 * c12 - c02 * c11
+    A11 = c00 * c22 - c02 * c02
+    A12 = c01 * c02 - c00 * c12
+    A22 = c00 * c11 - c01 * c01
+    det = max(c00 * A00 + c01 * A01 + c02 * A02, 0.0)
+    q = (
+        A00 * m0 * m0
+        + A11 * m1 * m1
+        + A22 * m2 * m2
+        + 2.0 * (A01 * m0 * m1 + A02 * m0 * m2 + A12 * m1 * m2)
+    )
+    den = det / W + q
+    return det / den if den > 0 else 0.0
+
+
+def _merged_error_py(a: tuple, b: tuple) -> float:
+    """``_stats_error_py(_merge_py(a, b))`` fused (the merge-scoring hot path)."""
+    W1, x1, y1, z1, c00, c01, c02, c11, c12, c22 = a
+    W2, x2, y2, z2, d00, d01, d02, d11, d12, d22 = b
+    W = W1 + W2
+    dx, dy, dz = x2 - x1, y2 - y1, z2 - z1
+    f = W2 / W
+    g = W1 * f
+    m0, m1, m2 = x1 + dx * f, y1 + dy * f, z1 + dz * f
+    c00 = c00 + d00 + g * dx * dx
+    c01 = c01 + d01 + g * dx * dy
+    c02 = c02 + d02 + g * dx * dz
+    c11 = c11 + d11 + g * dy * dy
+    c12 = c12 + d12 + g * dy * dz
+    c22 = c22 + d22 + g * dz * dz
     A00 = c11 * c22 - c12 * c12
     A01 = c02 * c12 - c01 * c22
     A02 = c01 * c12 - c02 * c11
@@ -593,6 +627,32 @@ def _tetromino_costs(pts_flat: np.ndarray, cells: np.ndarray) -> np.ndarray:
     return _stats_error(W, m, C)
 
 
+_CHI2_1_MEDIAN = 0.45493642311957283  # median of the chi-squared distribution with 1 dof
+
+
+def estimate_noise(points: Float[ArrayLike, "H W 3"]) -> float:
+    """Robust estimate of the radial noise ``σ`` (m) of an organized scan.
+
+    Each tetromino's creation cost ``e_crt`` is the minimised error of a plane fitted to 4
+    rays, so on a plane it is ``σ² χ²(1)`` distributed (4 rays, 3 plane parameters; the
+    ray-path residual of radial noise does not depend on the incidence angle). Tetrominoes
+    across edges are outliers, hence the median: ``σ = sqrt(median(e_crt) / 0.455)``.
+    Lets a threshold ``e = κ σ²`` carry over between sensors of different noise.
+
+    Raises:
+        ValueError: As :func:`extract_planes` for bad ``points``, or if the scan holds no
+            complete tetromino.
+    """
+    pts, valid, _ = _check_inputs(points, None, None, None, 4)
+    K = valid.size
+    flat = np.where(valid[..., None], pts, 0.0).reshape(K, 3)
+    nbr = _neighbours(pts, valid, math.inf)
+    _, _, cells = _tetromino_table(valid, nbr)
+    if cells.shape[0] == 0:
+        raise ValueError("points: the scan holds no 4 valid neighbouring rays")
+    return float(np.sqrt(np.median(_tetromino_costs(flat, cells)) / _CHI2_1_MEDIAN))
+
+
 # --------------------------------------------------------------------------------------
 # Result
 # --------------------------------------------------------------------------------------
@@ -769,6 +829,44 @@ def extract_planes(
             point, contains inf or partly-NaN points, or a parameter is out of range.
     """
     pts, valid, prm = _check_inputs(points, max_increment, max_planes, max_distance_m, min_points)
+    return _ppe(pts, valid, prm, [prm.max_increment], min_points, refit, progress)[0]
+
+
+def extract_planes_path(
+    points: Float[ArrayLike, "H W 3"],
+    max_increments: Sequence[float],
+    *,
+    max_planes: int | None = None,
+    max_distance_m: float | None = None,
+    min_points: int = 4,
+    refit: bool = True,
+    progress: bool = False,
+) -> list[PlaneSegmentation]:
+    """PPE at several error thresholds ``e`` from one greedy run.
+
+    The greedy order does not depend on ``e`` (it only decides when to stop), so the
+    segmentation for every ``e`` is a prefix of the run with the largest one. Used by the
+    experiments' grid searches. Arguments as in :func:`extract_planes`.
+
+    Returns:
+        One :class:`PlaneSegmentation` per entry of ``max_increments`` (same order).
+    """
+    incs = [float(e) for e in max_increments]
+    if not incs:
+        raise ValueError("max_increments must not be empty")
+    pts, valid, prm = _check_inputs(points, max(incs), max_planes, max_distance_m, min_points)
+    for e in incs:
+        _check_inputs(pts[:2, :2], e, None, None, min_points)
+    order = np.argsort(incs, kind="stable")
+    segs = _ppe(pts, valid, prm, [incs[k] for k in order], min_points, refit, progress)
+    out: list[PlaneSegmentation | None] = [None] * len(incs)
+    for k, seg in zip(order, segs):
+        out[k] = seg
+    return out  # type: ignore[return-value]
+
+
+def _ppe(pts, valid, prm: _Params, increments: list[float], min_points, refit, progress):
+    """The fast greedy loop; one snapshot per threshold in ``increments`` (ascending)."""
     H, W = valid.shape
     K = H * W
     flat = np.where(valid[..., None], pts, 0.0).reshape(K, 3)
@@ -786,13 +884,16 @@ def extract_planes(
         else np.zeros(0, int)
     )
     ends = np.r_[starts[1:], anchors.size].astype(np.int64)
-    tcost_l = tcost.tolist()
-    anchors_l = anchors.tolist()
-    shape_l = shape_ids.tolist()
-    cells_l = cells.tolist()
-    heap: list[tuple] = [
-        (tcost_l[s], CREATE, anchors_l[s], shape_l[s], int(s), int(e)) for s, e in zip(starts, ends)
-    ]
+    heap: list[tuple] = list(
+        zip(
+            tcost[starts].tolist(),
+            [CREATE] * starts.size,
+            anchors[starts].tolist(),
+            shape_ids[starts].tolist(),
+            starts.tolist(),
+            ends.tolist(),
+        )
+    )
     heapq.heapify(heap)
 
     owner = np.full(K, -1, dtype=np.int64)  # plane id of each ray, -1 = atom, -2 = invalid
@@ -801,6 +902,7 @@ def extract_planes(
     nbr_l = nbr.tolist()
     flat_l = flat.tolist()
     aw_l = aw.tolist()
+    atoms = [_atom(w, p) for w, p in zip(aw_l, flat_l)]  # per-ray statistics
     ax, ay, az = flat[:, 0].copy(), flat[:, 1].copy(), flat[:, 2].copy()
     stats: list[tuple] = []  # (W, m0, m1, m2, c00, c01, c02, c11, c12, c22) per plane
     err: list[float] = []
@@ -824,15 +926,15 @@ def extract_planes(
         B = np.fromiter(b, dtype=np.int64, count=len(b))
         keep = owner[B] == -1
         if not keep.all():
+            b.difference_update(B[~keep].tolist())
             B = B[keep]
-            boundary[j] = set(B.tolist())
             if B.size == 0:
                 return
         W1, x1, y1, z1, c00, c01, c02, c11, c12, c22 = stats[j]
         if B.size <= 8:
             best, k = math.inf, -1
             for u in B.tolist():
-                e = _stats_error_py(_merge_py(stats[j], _atom(aw_l[u], flat_l[u])))
+                e = _merged_error_py(stats[j], atoms[u])
                 if e < best or (e == best and u < k):
                     best, k = e, u
             best -= err[j]
@@ -867,7 +969,7 @@ def extract_planes(
         sj, ej, cj = stats[j], err[j], canon[j]
         best = None
         for q in nb:
-            c = _stats_error_py(_merge_py(sj, stats[q])) - ej - err[q]
+            c = _merged_error_py(sj, stats[q]) - ej - err[q]
             cq = canon[q]
             key = (c, MERGE, cj, cq) if cj < cq else (c, MERGE, cq, cj)
             if best is None or key < best[0]:
@@ -888,6 +990,17 @@ def extract_planes(
                     adjacent[j].add(o)
                     adjacent[o].add(j)
 
+    pending = list(increments)
+    raw: list[tuple] = []
+
+    def snapshot(cost: float) -> bool:
+        """Record the state for every pending threshold below ``cost``; True if none is left."""
+        while pending and cost > pending[0]:
+            pending.pop(0)
+            live = [np.asarray(members[j], dtype=np.int64) for j in range(len(members)) if alive[j]]
+            raw.append((live, list(kinds), list(costs), "max_increment", n_atoms))
+        return not pending
+
     bar = None
     if progress:
         from tqdm.auto import tqdm
@@ -895,7 +1008,7 @@ def extract_planes(
         bar = tqdm(total=n_atoms, desc="PPE", unit="ray", mininterval=0.5)
     reason = "exhausted"
     since = 0
-    while heap:
+    while heap and pending:
         if prm.max_planes and n_planes + n_atoms <= prm.max_planes:
             reason = "max_planes"
             break
@@ -903,26 +1016,26 @@ def extract_planes(
         cost, kind = item[0], item[1]
         if kind == CREATE:
             s, e = item[4], item[5]
-            c0, c1, c2, c3 = cells_l[s]
+            cl = cells[s].tolist()
+            c0, c1, c2, c3 = cl
             if not (free[c0] and free[c1] and free[c2] and free[c3]):
                 s += 1
                 while s < e:
-                    c0, c1, c2, c3 = cells_l[s]
+                    c0, c1, c2, c3 = cells[s].tolist()
                     if free[c0] and free[c1] and free[c2] and free[c3]:
-                        heapq.heappush(heap, (tcost_l[s], CREATE, anchors_l[s], shape_l[s], s, e))
+                        item = (float(tcost[s]), CREATE, int(anchors[s]), int(shape_ids[s]), s, e)
+                        heapq.heappush(heap, item)
                         break
                     s += 1
                 continue
-            if cost > prm.max_increment:
-                reason = "max_increment"
+            if cost > pending[0] and snapshot(cost):
                 break
             j = len(members)
-            cl = cells_l[s]
             members.append(list(cl))
             owner[cl] = j
-            st = _atom(aw_l[c0], flat_l[c0])
+            st = atoms[c0]
             for u in (c1, c2, c3):
-                st = _merge_py(st, _atom(aw_l[u], flat_l[u]))
+                st = _merge_py(st, atoms[u])
             stats.append(st)
             err.append(_stats_error_py(st))
             canon.append(min(cl))
@@ -946,13 +1059,12 @@ def extract_planes(
             if not free[k]:
                 refresh_ext(j)  # the best atom was taken: re-score (costs only rise)
                 continue
-            if cost > prm.max_increment:
-                reason = "max_increment"
+            if cost > pending[0] and snapshot(cost):
                 break
             owner[k] = j
             free[k] = 0
             members[j].append(k)
-            st = _merge_py(stats[j], _atom(aw_l[k], flat_l[k]))
+            st = _merge_py(stats[j], atoms[k])
             stats[j] = st
             err[j] = _stats_error_py(st)
             if k < canon[j]:
@@ -971,8 +1083,7 @@ def extract_planes(
             if not alive[i] or vi != version[i]:
                 refresh_mrg(j)  # the partner changed: re-score j's merges
                 continue
-            if cost > prm.max_increment:
-                reason = "max_increment"
+            if cost > pending[0] and snapshot(cost):
                 break
             if len(members[i]) > len(members[j]):
                 i, j = j, i  # j survives (the larger)
@@ -1006,7 +1117,8 @@ def extract_planes(
         bar.update(since)
         bar.close()
     live = [np.asarray(members[j], dtype=np.int64) for j in range(len(members)) if alive[j]]
-    return _finish(pts, valid, live, kinds, costs, reason, n_atoms, min_points, refit)
+    raw.extend((live, kinds, costs, reason, n_atoms) for _ in pending)
+    return [_finish(pts, valid, *r, min_points, refit) for r in raw]
 
 
 # --------------------------------------------------------------------------------------

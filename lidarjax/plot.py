@@ -109,3 +109,45 @@ def plot_polyline_scan(
     ax.set_title(f"{title} (J = {n})" if title else f"J = {n}", fontsize=9)
     ax.tick_params(labelsize=7)
     return ax
+
+
+def plot_segmentation(
+    images: dict[str, np.ndarray],
+    *,
+    title: str = "",
+    seed: int = 0,
+):
+    """Label images side by side (ground truth, then methods), like Figure 11.1.
+
+    Each region gets a random colour (the same label index the same colour in every
+    panel); pixels with a negative label (unsegmented, no return) are black.
+
+    Args:
+        images: ``{panel title: [H W] int labels}``.
+        title: figure title.
+        seed: seed of the colour table.
+
+    Returns:
+        The matplotlib ``Figure``.
+    """
+    if not images:
+        raise ValueError("images must not be empty")
+    fig, axes = plt.subplots(1, len(images), figsize=(3.2 * len(images), 3.4), squeeze=False)
+    colors = np.random.default_rng(seed).uniform(0.15, 1.0, (4096, 3))
+    for ax, (name, lab) in zip(axes[0], images.items()):
+        lab = np.asarray(lab)
+        if lab.ndim != 2 or not np.issubdtype(lab.dtype, np.integer):
+            raise ValueError(
+                f"images[{name!r}] must be a 2-D integer label image, got {lab.dtype} {lab.shape}"
+            )
+        img = np.zeros(lab.shape + (3,))
+        on = lab >= 0
+        img[on] = colors[lab[on] % len(colors)]
+        ax.imshow(img, interpolation="nearest")
+        ax.set_title(name, fontsize=10)
+        ax.set_xticks([])
+        ax.set_yticks([])
+    if title:
+        fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    return fig

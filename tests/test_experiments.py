@@ -229,3 +229,42 @@ def test_polylines_small(tmp_path):
     assert res["example"]["log"] == "intel" and res["example"]["methods"]["PLE"]["J"] <= 10
     for f in ("results.md", "fig10_4a.png", "fig10_4b.png", "fig10_3.png"):
         assert (tmp_path / f).stat().st_size > 0
+
+
+@pytest.mark.slow
+def test_planes_small(tmp_path):
+    """Chapter 11 on 2 + 2 generated 60 x 60 scans and the shared crop (Table 11.1)."""
+    res = run_experiment(
+        "planes",
+        tmp_path,
+        "shape=[60,60]",
+        "n_train=2",
+        "n_test=2",
+        "ppe.grid.d=[0.1]",
+        "ppe.grid.kappa=[16,50]",
+        "ppe.grid.min_points=[4]",
+        "msac.grid.threshold_m=[0.05]",
+        "peac.grid.block_size=[6]",
+        "peac.grid.max_block_mse=[1.2e-3]",
+        "peac.grid.max_merge_mse=[1.2e-3]",
+    )
+    assert res["tuned"]["PPE"]["kappa"] in (16, 50)
+    assert len(res["train"]["PPE"]["f_mean"]) == 2
+    for key, n in (("test", 2), ("crop", 1)):
+        part = res[key]
+        assert part["n_scans"] == n
+        names = {"PPE", "MSAC", "PEAC"} | ({"PPE (absolute e)"} if key == "crop" else set())
+        assert set(part["methods"]) == names
+        for s in part["methods"].values():
+            assert 0 <= s["f"]["mean"] <= 1 and 0 <= s["k"]["mean"] <= 1
+            assert s["seconds"]["mean"] > 0 and s["f"]["n"] == n
+        # the exactly refitted ground truth explains its rays at about the noise level
+        assert part["gt_rmse_m"]["mean"] < (0.05 if key == "test" else 0.02)
+    assert res["crop"]["n_gt_mean"] == 13
+    # PPE beats MSAC on the crop in the fraction of correctly found points
+    assert (
+        res["crop"]["methods"]["PPE (absolute e)"]["k"]["mean"]
+        > res["crop"]["methods"]["MSAC"]["k"]["mean"]
+    )
+    for f in ("fig11_1_test.png", "fig11_1_crop.png", "results.md"):
+        assert (tmp_path / f).stat().st_size > 0

@@ -12,12 +12,15 @@ import scipy.optimize
 from lidarjax.datasets import fetch, read_pcd
 from lidarjax.features import (
     TETROMINOES,
+    estimate_noise,
     extract_planes,
+    extract_planes_path,
     extract_planes_reference,
     fit_planes,
     linearized_plane_error,
     plane_error,
     plane_ranges,
+    refit_segmentation,
 )
 from lidarjax.features._plane import _merge_stats, _points_stats, _stats_error
 from lidarjax.raytrace import ray_plane
@@ -370,3 +373,44 @@ def test_max_planes_and_max_increment_stop():
 def test_bad_input(points, kwargs, match):
     with pytest.raises(ValueError, match=match):
         extract_planes(points, **kwargs)
+
+
+def test_path_equals_separate_runs(synpeb_crop):
+    sub = synpeb_crop[50:64, 60:74]
+    incs = [2e-3, 1e-5, 5e-4]
+    path = extract_planes_path(sub, incs, max_distance_m=0.1, refit=False)
+    for e, seg in zip(incs, path):
+        one = extract_planes(sub, max_increment=e, max_distance_m=0.1, refit=False)
+        np.testing.assert_array_equal(seg.labels, one.labels)
+        np.testing.assert_array_equal(seg.step_costs, one.step_costs)
+        assert seg.stop_reason == one.stop_reason
+    assert path[1].n_planes != path[0].n_planes
+    with pytest.raises(ValueError, match="max_increments"):
+        extract_planes_path(sub, [])
+    with pytest.raises(ValueError, match="max_increment"):
+        extract_planes_path(sub, [1e-3, -1.0])
+
+
+def test_estimate_noise_recovers_radial_sigma():
+    for sigma, seed in ((0.02, 0), (0.005, 1)):
+        pts, _ = _scene_scan(h=40, w=50, sigma=sigma, seed=seed)
+        assert abs(estimate_noise(pts) / sigma - 1.0) < 0.1
+
+
+def test_refit_segmentation_matches_fit_planes():
+    pts, gt = _scene_scan(h=12, w=16, sigma=0.02, seed=2)
+    labels = gt.copy()
+    labels[0, 0] = -1
+    sup, nrm, err = refit_segmentation(pts, labels)
+    assert sup.shape == (2, 3) and err.shape == (2,)
+    for j in range(2):
+        m = labels == j
+        r = np.linalg.norm(pts[m], axis=-1)
+        E = plane_error(sup[j], nrm[j], np.zeros((m.sum(), 3)), pts[m] / r[:, None], r)
+        np.testing.assert_allclose(err[j], E, rtol=1e-9)
+        # the exact minimum: no better than the linearised plane's exact error by > 0
+        assert err[j] <= linearized_plane_error(pts[m]) * 1.05
+    with pytest.raises(ValueError, match="labels"):
+        refit_segmentation(pts, np.where(np.arange(gt.size).reshape(gt.shape) < 2, 2, labels))
+    with pytest.raises(ValueError, match="labels"):
+        refit_segmentation(pts, labels.astype(float))

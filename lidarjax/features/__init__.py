@@ -14,6 +14,7 @@ from ._plane import fit_planes as fit_planes
 from ._plane import linearized_plane_error as linearized_plane_error
 from ._plane import plane_error as plane_error
 from ._plane import plane_ranges as plane_ranges
+from ._plane import refit_segmentation as refit_segmentation
 from ._plane_baselines import msac_planes as msac_planes
 from ._plane_baselines import peac_planes as peac_planes
 from ._polyline import AIC as AIC
@@ -62,6 +63,7 @@ __all__ = [
     "extract_planes_reference",
     "extract_planes_path",
     "estimate_noise",
+    "refit_segmentation",
     "msac_planes",
     "peac_planes",
 ]

@@ -65,6 +65,7 @@ __all__ = [
     "extract_planes",
     "extract_planes_reference",
     "extract_planes_path",
+    "refit_segmentation",
     "linearized_plane_error",
     "estimate_noise",
 ]
@@ -131,8 +132,8 @@ class PlaneFit(eqx.Module):
         normal: ``[*b, 3]`` unit normal, pointing away from the rays' mean origin.
         error: ``[*b]`` the minimised ray-path error ``E`` (Eq. 11.2), m².
         n_rays: ``[*b]`` rays in each set.
-        converged: ``[*b]`` whether the solver met its tolerance (``False`` for a
-            degenerate set, e.g. collinear rays, where the PCA plane is returned).
+        converged: ``[*b]`` whether the solver met its tolerance and improved on the PCA
+            plane (``False`` e.g. for collinear rays; then the PCA plane is returned).
     """
 
     support: Float[Array, "*b 3"]
@@ -183,9 +184,13 @@ def _fit_one(origins, directions, ranges, mask, solver, max_steps):
         return jnp.where(ok, ranges - rhat, jnp.where(mask, ranges, 0.0))
 
     sol = optx.least_squares(residuals, solver, a0, max_steps=max_steps, throw=False)
-    ok = jnp.all(jnp.isfinite(sol.value))  # a degenerate set (e.g. collinear rays): keep a0
+    res0 = residuals(a0, None)
+    res1 = residuals(sol.value, None)
+    # Guard: a degenerate set (e.g. collinear rays) or a diverged undamped step keeps the
+    # PCA plane, so the result is never worse than the initial guess.
+    ok = jnp.all(jnp.isfinite(sol.value)) & (jnp.sum(res1 * res1) <= jnp.sum(res0 * res0))
     a = jnp.where(ok, sol.value, a0)
-    res = residuals(a, None)
+    res = jnp.where(ok, res1, res0)
     norm2 = jnp.sum(a * a)
     normal = a / jnp.sqrt(norm2)
     support = anchor + a / norm2
@@ -777,6 +782,51 @@ def _refit(flat: np.ndarray, members: list[np.ndarray]):
             normals[ids] = np.asarray(fit.normal)[: ids.size]
             errors[ids] = np.asarray(fit.error)[: ids.size]
     return supports, normals, errors
+
+
+def refit_segmentation(
+    points: Float[ArrayLike, "H W 3"], labels: Int[ArrayLike, "H W"]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Fit every labelled region of any segmentation on the exact ray-path error (Eq. 11.2).
+
+    E.g. to score a ground-truth segmentation or another method's regions with PPE's model.
+    Regions are padded to 256 x 16^i rays and fitted 8 at a time with :func:`fit_planes`.
+
+    Args:
+        points: ``[H, W, 3]`` organized scan, sensor at the origin (m).
+        labels: ``[H, W]`` region index per ray, ``0 .. J-1``; negative = no region.
+
+    Returns:
+        ``(supports [J, 3], normals [J, 3], errors [J])`` (m, unit, m²).
+
+    Raises:
+        ValueError: On shape mismatches, a region with fewer than 3 rays or with invalid
+            (NaN) points.
+    """
+    pts = np.asarray(points, dtype=np.float64)
+    lab = np.asarray(labels)
+    if pts.ndim != 3 or pts.shape[-1] != 3:
+        raise ValueError(f"points must have shape [H, W, 3], got {pts.shape}")
+    if lab.shape != pts.shape[:2] or not np.issubdtype(lab.dtype, np.integer):
+        raise ValueError(
+            f"labels must be integers of shape {pts.shape[:2]}, got {lab.dtype} {lab.shape}"
+        )
+    flat = pts.reshape(-1, 3)
+    lab = lab.ravel()
+    J = int(lab.max()) + 1 if lab.size and lab.max() >= 0 else 0
+    order = np.argsort(lab, kind="stable")
+    counts = np.bincount(lab[lab >= 0], minlength=J)
+    if J and counts.min() < 3:
+        raise ValueError(
+            f"labels: region {int(counts.argmin())} has {int(counts.min())} rays, a plane needs 3"
+        )
+    if J and not np.isfinite(flat[lab >= 0]).all():
+        raise ValueError("points: a labelled ray has no (finite) point")
+    first = np.searchsorted(lab[order], np.arange(J))
+    members = [order[first[j] : first[j] + counts[j]] for j in range(J)]
+    if not J:
+        return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0)
+    return _refit(flat, members)
 
 
 # --------------------------------------------------------------------------------------

@@ -123,34 +123,29 @@ def _score(points, gt, labels, supports, normals, scan, rhat_fn=None) -> dict:
     )
 
 
-def _run_ppe(points, params_list, *, x64_refit=True):
-    """One greedy run per distinct d; returns [(labels, supports, normals, seconds)]."""
+def _run_ppe(points, params_list, refit: bool):
+    """One greedy run per distinct (d, min_points), all thresholds from it (a path);
+    returns [(labels, supports, normals, seconds, sigma_hat)]."""
     from lidarjax.features import estimate_noise, extract_planes_path
 
-    out = []
-    by_d: dict = {}
+    groups: dict = {}
     for i, p in enumerate(params_list):
-        by_d.setdefault(p["d"], []).append(i)
+        groups.setdefault((p["d"], p["min_points"]), []).append(i)
     res = [None] * len(params_list)
+    t0 = time.perf_counter()
     sigma = estimate_noise(points)
-    for d, idx in by_d.items():
-        t0 = time.perf_counter()
+    t_sigma = time.perf_counter() - t0
+    for (d, mp), idx in groups.items():
         incs = [
             params_list[i]["kappa"] * sigma**2 if "kappa" in params_list[i] else params_list[i]["e"]
             for i in idx
         ]
-        segs = extract_planes_path(points, incs, max_distance_m=d, min_points=4, refit=x64_refit)
-        dt = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        segs = extract_planes_path(points, incs, max_distance_m=d, min_points=mp, refit=refit)
+        dt = time.perf_counter() - t0 + t_sigma
         for i, seg in zip(idx, segs):
-            res[i] = (seg, dt)
-    for (seg, dt), p in zip(res, params_list):
-        labels = seg.labels.copy()
-        keep = seg.sizes >= p["min_points"]
-        remap = np.full(seg.n_planes + 1, -1)
-        remap[:-1][keep] = np.arange(keep.sum())
-        labels = remap[np.where(labels >= 0, labels, seg.n_planes)]
-        out.append((labels, seg.supports[keep], seg.normals[keep], dt, sigma))
-    return out
+            res[i] = (seg.labels, seg.supports, seg.normals, dt, sigma)
+    return res
 
 
 def _run_baseline(method, points, params):
@@ -165,13 +160,18 @@ def _run_baseline(method, points, params):
 
 
 def job(
-    source: dict, method: str, params_list: list[dict], keep_labels: bool = False
+    source: dict,
+    method: str,
+    params_list: list[dict],
+    keep_labels: bool = False,
+    refit: bool = True,
 ) -> list[dict]:
-    """Run ``method`` with every parameter set on one scan; return the scores (and labels)."""
+    """Run ``method`` with every parameter set on one scan; return the scores (and labels).
+    ``refit=False`` (grid search): PPE's planes keep their clustering (linearised) fit."""
     points, gt, scan = _load(source)
     results = []
     if method == "PPE":
-        runs = _run_ppe(points, params_list)
+        runs = _run_ppe(points, params_list, refit)
         for (labels, sup, nrm, dt, sigma), p in zip(runs, params_list):
             s = _score(points, gt, labels, sup, nrm, scan)
             s.update(seconds=dt, sigma_hat_m=sigma, params=p)

@@ -414,3 +414,14 @@ def test_refit_segmentation_matches_fit_planes():
         refit_segmentation(pts, np.where(np.arange(gt.size).reshape(gt.shape) < 2, 2, labels))
     with pytest.raises(ValueError, match="labels"):
         refit_segmentation(pts, labels.astype(float))
+
+
+def test_fit_one_scan_column_is_finite():
+    """The endpoints of one scan column are collinear: the plane is not determined, but the
+    fit must neither pass through the sensor nor blow up (the error stays at the noise)."""
+    el = np.linspace(-0.3, 0.3, 14)
+    d = np.stack([np.cos(el), np.zeros(14), np.sin(el)], -1)
+    r = 3.0 / d[:, 0] + np.random.default_rng(0).normal(0.0, 0.02, 14)
+    fit = _fit(np.zeros((14, 3)), d, r)
+    assert np.isfinite(float(fit.error)) and float(fit.error) <= np.sum((r - 3.0 / d[:, 0]) ** 2)
+    assert abs(float(fit.support @ fit.normal)) > 1.0  # not through the sensor

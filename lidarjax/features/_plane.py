@@ -170,8 +170,15 @@ def _fit_one(origins, directions, ranges, mask, solver, max_steps):
     centroid = jnp.sum(pts * wm[:, None], axis=0) / n
     dev = (pts - centroid) * wm[:, None]
     cov = dev.T @ dev
-    _, vecs = jnp.linalg.eigh(cov)
-    n0 = vecs[:, 0]
+    lam, vecs = jnp.linalg.eigh(cov)
+    # PCA plane, scored like the ray-path error (point-to-plane scatter / cos² of the
+    # incidence): a plane through the sensor (e.g. the rays of one scan column, whose
+    # endpoints are collinear) would explain nothing.
+    cos2 = (vecs.T @ centroid) ** 2 / jnp.maximum(jnp.sum(centroid * centroid), 1e-300)
+    score = jnp.where(
+        cos2 > 1e-12, jnp.maximum(lam, 0.0) / jnp.where(cos2 > 1e-12, cos2, 1.0), jnp.inf
+    )
+    n0 = vecs[:, jnp.argmin(score)]
     dist = jnp.dot(n0, centroid)
     n0 = jnp.where(dist < 0, -n0, n0)
     dist = jnp.abs(dist)
@@ -218,8 +225,9 @@ def fit_planes(
     The plane is parametrised as ``a . (p - o) = 1`` around the set's mean ray origin ``o``
     (a plane cannot pass through the sensor it is seen from), so
     ``r̂_k = (1 - a . (s_k - o)) / (a . v_k)`` and the residuals ``r_k - r̂_k`` are smooth in
-    ``a``. The initial guess is the PCA plane of the endpoints; Gauss–Newton (or
-    ``solver``) then minimises the exact residuals. All sets are solved in one
+    ``a``. The initial guess is a PCA plane of the endpoints (the covariance eigenvector
+    with the least scatter / cos² of incidence, so never a plane through the sensor);
+    Gauss–Newton (or ``solver``) then minimises the exact residuals. All sets are solved in one
     ``vmap`` ped call: pad the sets to a common ``n`` and pass ``mask``.
 
     Args:
@@ -750,13 +758,14 @@ def _finish(
     )
 
 
-_REFIT_ROWS = 8  # planes per fit_planes call in _refit
+_REFIT_RAYS = 1 << 16  # rays per fit_planes call in _refit (at least 8 planes per call)
 
 
 def _refit(flat: np.ndarray, members: list[np.ndarray]):
     """Exact Eq. (11.2) refit of every plane with :func:`fit_planes`. Planes are padded to
-    256 x 16^i rays and fitted 8 at a time, so a process compiles at most a handful of
-    shapes (each padded size compiles once, ~3 s)."""
+    256 x 16^i rays and fitted ``max(8, 2^16 / n)`` at a time, so a process compiles at most
+    a handful of shapes (each compiles once, ~3 s) and thousands of small planes take a few
+    calls."""
     J = len(members)
     supports = np.zeros((J, 3))
     normals = np.zeros((J, 3))
@@ -766,16 +775,16 @@ def _refit(flat: np.ndarray, members: list[np.ndarray]):
     for b in np.unique(bucket):
         ids_all = np.flatnonzero(bucket == b)
         n = 256 * 16 ** int(b)
-        for c in range(0, ids_all.size, _REFIT_ROWS):
-            ids = ids_all[c : c + _REFIT_ROWS]
-            pts = np.ones((_REFIT_ROWS, n, 3))
-            mask = np.zeros((_REFIT_ROWS, n), bool)
+        rows = max(8, _REFIT_RAYS // n)
+        for c in range(0, ids_all.size, rows):
+            ids = ids_all[c : c + rows]
+            pts = np.ones((rows, n, 3))
+            mask = np.zeros((rows, n), bool)
             for row, j in enumerate(ids):
                 pts[row, : sizes[j]] = flat[members[j]]
                 mask[row, : sizes[j]] = True
-            for row in range(ids.size, _REFIT_ROWS):  # padding rows: a copy of the first plane
-                pts[row] = pts[0]
-                mask[row] = mask[0]
+            pts[ids.size :] = pts[0]  # padding rows: copies of the first plane
+            mask[ids.size :] = mask[0]
             r = np.linalg.norm(pts, axis=-1)
             fit = fit_planes(np.zeros_like(pts), pts / r[..., None], r, mask)
             supports[ids] = np.asarray(fit.support)[: ids.size]
@@ -790,7 +799,7 @@ def refit_segmentation(
     """Fit every labelled region of any segmentation on the exact ray-path error (Eq. 11.2).
 
     E.g. to score a ground-truth segmentation or another method's regions with PPE's model.
-    Regions are padded to 256 x 16^i rays and fitted 8 at a time with :func:`fit_planes`.
+    Regions are padded to 256 x 16^i rays and fitted in batches with :func:`fit_planes`.
 
     Args:
         points: ``[H, W, 3]`` organized scan, sensor at the origin (m).

@@ -315,45 +315,63 @@ def _merge_stats(W1, m1, C1, W2, m2, C2, xp=np):
     return W, m, C
 
 
-def _stats_error(W, m, C, xp=np):
-    """``min_a Σ w (a . p - 1)² = det C / (det C / W + m^T adj(C) m)`` (0 if degenerate)."""
-    c00, c01, c02, c11, c12, c22 = (C[..., i] for i in range(6))
-    A00 = c11 * c22 - c12 * c12
-    A01 = c02 * c12 - c01 * c22
-    A02 = c01 * c12 - c02 * c11
-    A11 = c00 * c22 - c02 * c02
-    A12 = c01 * c02 - c00 * c12
-    A22 = c00 * c11 - c01 * c01
-    det = xp.maximum(c00 * A00 + c01 * A01 + c02 * A02, 0.0)
-    m0, m1, m2 = m[..., 0], m[..., 1], m[..., 2]
+def _adj6(c00, c01, c02, c11, c12, c22):
+    """Adjugate of a symmetric 3 x 3 matrix, as its 6 unique entries (floats or arrays)."""
+    return (
+        c11 * c22 - c12 * c12,
+        c02 * c12 - c01 * c22,
+        c01 * c12 - c02 * c11,
+        c00 * c22 - c02 * c02,
+        c01 * c02 - c00 * c12,
+        c00 * c11 - c01 * c01,
+    )
+
+
+def _det_q(m0, m1, m2, c00, c01, c02, c11, c12, c22):
+    """``(det C, m^T adj(C) m)``, the two terms of the minimised error (floats or arrays)."""
+    A00, A01, A02, A11, A12, A22 = _adj6(c00, c01, c02, c11, c12, c22)
+    det = c00 * A00 + c01 * A01 + c02 * A02
     q = (
         A00 * m0 * m0
         + A11 * m1 * m1
         + A22 * m2 * m2
         + 2.0 * (A01 * m0 * m1 + A02 * m0 * m2 + A12 * m1 * m2)
     )
+    return det, q
+
+
+def _stats_error_cols(W, m0, m1, m2, c00, c01, c02, c11, c12, c22, xp=np):
+    """``min_a Σ w (a . p - 1)² = det C / (det C / W + m^T adj(C) m)`` (0 if degenerate),
+    on the statistics' columns (arrays)."""
+    det, q = _det_q(m0, m1, m2, c00, c01, c02, c11, c12, c22)
+    det = xp.maximum(det, 0.0)
     den = det / W + q
     ok = den > 0
     return xp.where(ok, det / xp.where(ok, den, 1.0), 0.0)
 
 
+def _stats_error(W, m, C, xp=np):
+    """:func:`_stats_error_cols` on ``(W [...], m [..., 3], C [..., 6])``."""
+    return _stats_error_cols(
+        W, *(m[..., i] for i in range(3)), *(C[..., i] for i in range(6)), xp=xp
+    )
+
+
 def _stats_plane(W, m, C):
-    """Minimiser ``a = W adj(C) m / (det C + W m^T adj(C) m)`` -> (support, unit normal)."""
-    c00, c01, c02, c11, c12, c22 = (C[..., i] for i in range(6))
+    """Minimiser ``a ∝ adj(C) m`` -> (support, unit normal); NumPy arrays."""
+    A00, A01, A02, A11, A12, A22 = _adj6(*(C[..., i] for i in range(6)))
     A = np.stack(
         [
-            np.stack([c11 * c22 - c12 * c12, c02 * c12 - c01 * c22, c01 * c12 - c02 * c11], -1),
-            np.stack([c02 * c12 - c01 * c22, c00 * c22 - c02 * c02, c01 * c02 - c00 * c12], -1),
-            np.stack([c01 * c12 - c02 * c11, c01 * c02 - c00 * c12, c00 * c11 - c01 * c01], -1),
+            np.stack([A00, A01, A02], -1),
+            np.stack([A01, A11, A12], -1),
+            np.stack([A02, A12, A22], -1),
         ],
         -2,
     )
     Am = np.einsum("...ij,...j->...i", A, m)
-    a = Am / np.linalg.norm(Am, axis=-1, keepdims=True)  # direction of a (scale irrelevant)
-    normal = a
+    normal = Am / np.linalg.norm(Am, axis=-1, keepdims=True)  # direction of a (scale irrelevant)
     dist = np.einsum("...i,...i->...", normal, m)
-    support = normal * dist[..., None]
-    return support, normal
+    return normal * dist[..., None], normal
 
 
 def _points_stats(points, xp=np):
@@ -386,75 +404,16 @@ def _merge_py(a: tuple, b: tuple) -> tuple:
 
 
 def _stats_error_py(s: tuple) -> float:
-    """:func:`_stats_error` of one cluster in plain Python floats."""
-    W, m0, m1, m2, c00, c01, c02, c11, c12, c22 = s
-    A00 = c11 * c22 - c12 * c12
-    A01 = c02 * c12 - c01 * c22
-    A02 = c01 * c12 - c02 * c11
-    A11 = c00 * c22 - c02 * c02
-    A12 = c01 * c02 - c00 * c12
-    A22 = c00 * c11 - c01 * c01
-    det = max(c00 * A00 + c01 * A01 + c02 * A02, 0.0)
-    q = (
-        A00 * m0 * m0
-        + A11 * m1 * m1
-        + A22 * m2 * m2
-        + 2.0 * (A01 * m0 * m1 + A02 * m0 * m2 + A12 * m1 * m2)
-    )
-    den = det / W + q
+    """:func:`_stats_error` of one cluster in plain Python floats (the greedy hot path)."""
+    det, q = _det_q(*s[1:])
+    det = max(det, 0.0)
+    den = det / s[0] + q
     return det / den if den > 0 else 0.0
 
 
 def _merged_error_py(a: tuple, b: tuple) -> float:
-    """``_stats_error_py(_merge_py(a, b))`` fused (the merge-scoring hot path)."""
-    W1, x1, y1, z1, c00, c01, c02, c11, c12, c22 = a
-    W2, x2, y2, z2, d00, d01, d02, d11, d12, d22 = b
-    W = W1 + W2
-    dx, dy, dz = x2 - x1, y2 - y1, z2 - z1
-    f = W2 / W
-    g = W1 * f
-    m0, m1, m2 = x1 + dx * f, y1 + dy * f, z1 + dz * f
-    c00 = c00 + d00 + g * dx * dx
-    c01 = c01 + d01 + g * dx * dy
-    c02 = c02 + d02 + g * dx * dz
-    c11 = c11 + d11 + g * dy * dy
-    c12 = c12 + d12 + g * dy * dz
-    c22 = c22 + d22 + g * dz * dz
-    A00 = c11 * c22 - c12 * c12
-    A01 = c02 * c12 - c01 * c22
-    A02 = c01 * c12 - c02 * c11
-    A11 = c00 * c22 - c02 * c02
-    A12 = c01 * c02 - c00 * c12
-    A22 = c00 * c11 - c01 * c01
-    det = max(c00 * A00 + c01 * A01 + c02 * A02, 0.0)
-    q = (
-        A00 * m0 * m0
-        + A11 * m1 * m1
-        + A22 * m2 * m2
-        + 2.0 * (A01 * m0 * m1 + A02 * m0 * m2 + A12 * m1 * m2)
-    )
-    den = det / W + q
-    return det / den if den > 0 else 0.0
-
-
-def _stats_error_cols(W, m0, m1, m2, c00, c01, c02, c11, c12, c22) -> np.ndarray:
-    """:func:`_stats_error` on column arrays (the extension hot path)."""
-    A00 = c11 * c22 - c12 * c12
-    A01 = c02 * c12 - c01 * c22
-    A02 = c01 * c12 - c02 * c11
-    A11 = c00 * c22 - c02 * c02
-    A12 = c01 * c02 - c00 * c12
-    A22 = c00 * c11 - c01 * c01
-    det = np.maximum(c00 * A00 + c01 * A01 + c02 * A02, 0.0)
-    q = (
-        A00 * m0 * m0
-        + A11 * m1 * m1
-        + A22 * m2 * m2
-        + 2.0 * (A01 * m0 * m1 + A02 * m0 * m2 + A12 * m1 * m2)
-    )
-    den = det / W + q
-    ok = den > 0
-    return np.where(ok, det / np.where(ok, den, 1.0), 0.0)
+    """The minimised error of the union of two clusters (Python floats)."""
+    return _stats_error_py(_merge_py(a, b))
 
 
 def linearized_plane_error(points: Float[ArrayLike, "k 3"]) -> float:

@@ -577,26 +577,41 @@ def _tetromino_table(valid: np.ndarray, nbr: np.ndarray):
     return np.concatenate(anchors), np.concatenate(shape_ids), np.concatenate(cells).reshape(-1, 4)
 
 
+_TET_CHUNK = 1 << 15  # tetromino placements per lax.map chunk (bounds the memory)
+
+
 @jax.jit
-def _tetromino_costs_jax(cell_points):
-    W, m, C = _points_stats(cell_points, xp=jnp)
-    return _stats_error(W, m, C, xp=jnp)
+def _tetromino_costs_jax(points: Array, cells: Array) -> Array:
+    """``e_crt`` of ``cells [n_chunks, chunk, 4]`` (flat ray indices into ``points [K, 3]``)."""
+
+    def chunk(c):
+        W, m, C = _points_stats(points[c], xp=jnp)
+        return _stats_error(W, m, C, xp=jnp)
+
+    return jax.lax.map(chunk, cells)
 
 
 def _tetromino_costs(pts_flat: np.ndarray, cells: np.ndarray) -> np.ndarray:
-    """``e_crt`` of every tetromino placement: one batched JAX call (float64 on the host
-    path when x64 is off, so the greedy order does not depend on JAX's precision)."""
-    if cells.shape[0] == 0:
+    """``e_crt`` of every tetromino placement: one batched JAX call, chunked with
+    ``lax.map`` (float64 NumPy when x64 is off, so the greedy order does not depend on
+    JAX's precision)."""
+    n = cells.shape[0]
+    if n == 0:
         return np.zeros(0)
-    cp = pts_flat[cells]
     if jax.config.jax_enable_x64:
-        # pad to a power of two so scans of similar size share one compilation
-        n = cells.shape[0]
-        size = 1 << (n - 1).bit_length()
-        padded = np.concatenate([cp, np.repeat(cp[:1], size - n, axis=0)])
-        return np.asarray(_tetromino_costs_jax(jnp.asarray(padded)))[:n]
-    W, m, C = _points_stats(cp)
-    return _stats_error(W, m, C)
+        n_chunks = -(-n // _TET_CHUNK)
+        padded = np.zeros((n_chunks * _TET_CHUNK, 4), dtype=np.int64)
+        padded[:n] = cells
+        padded[n:] = cells[0]
+        out = _tetromino_costs_jax(
+            jnp.asarray(pts_flat), jnp.asarray(padded.reshape(n_chunks, _TET_CHUNK, 4))
+        )
+        return np.asarray(out).reshape(-1)[:n]
+    out = np.empty(n)
+    for i in range(0, n, _TET_CHUNK):
+        W, m, C = _points_stats(pts_flat[cells[i : i + _TET_CHUNK]])
+        out[i : i + _TET_CHUNK] = _stats_error(W, m, C)
+    return out
 
 
 _CHI2_1_MEDIAN = 0.45493642311957283  # median of the chi-squared distribution with 1 dof

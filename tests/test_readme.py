@@ -51,3 +51,11 @@ def test_readme_examples_run():
     assert r_hat.shape == (180,)
     explained = np.isfinite(r_hat) & (np.asarray(scan.kind) == 0)
     assert explained.sum() == int(ple.stats.n_explained)
+    # planes (PPE)
+    seg, hv, fit = ns["seg"], ns["hv"], ns["fit"]
+    assert seg.labels.shape == (100, 100) and seg.normals.shape == (seg.n_planes, 3)
+    assert hv.n_gt == 13 and hv.n_correct >= 5
+    assert bool(fit.converged)
+    np.testing.assert_allclose(float(fit.error), float(seg.errors[0]), rtol=1e-6)
+    assert 0.0005 < ns["sigma"] < 0.005
+    assert ns["room"].points.shape == (100, 100, 3)

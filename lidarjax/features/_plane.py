@@ -73,6 +73,15 @@ __all__ = [
 # Step kinds of the greedy loop.
 CREATE, EXTEND, MERGE = 0, 1, 2
 
+
+def _q(cost):
+    """The greedy order compares error increments at float32 resolution (7 digits), then
+    by (kind, ray / plane index). Increments that agree to ~1e-12 do occur (tetrominoes
+    sharing 3 rays across a plane edge), and float64 rounding (which differs between
+    formulas and between JAX and NumPy) must not decide between them."""
+    return np.asarray(cost, dtype=np.float64).astype(np.float32).astype(np.float64)
+
+
 # --------------------------------------------------------------------------------------
 # Ray-path plane model (JAX)
 # --------------------------------------------------------------------------------------
@@ -909,8 +918,10 @@ def _ppe(pts, valid, prm: _Params, increments: list[float], min_points, refit, p
     # Tetromino placements, scored in one batched call, sorted per anchor (lazy list).
     anchors, shape_ids, cells = _tetromino_table(valid, nbr)
     tcost = _tetromino_costs(flat, cells)
-    order = np.lexsort((shape_ids, tcost, anchors))
-    anchors, shape_ids, cells, tcost = anchors[order], shape_ids[order], cells[order], tcost[order]
+    tq = _q(tcost)
+    order = np.lexsort((shape_ids, tq, anchors))
+    anchors, shape_ids, cells = anchors[order], shape_ids[order], cells[order]
+    tcost, tq = tcost[order], tq[order]
     starts = (
         np.flatnonzero(np.r_[True, anchors[1:] != anchors[:-1]])
         if anchors.size
@@ -919,7 +930,7 @@ def _ppe(pts, valid, prm: _Params, increments: list[float], min_points, refit, p
     ends = np.r_[starts[1:], anchors.size].astype(np.int64)
     heap: list[tuple] = list(
         zip(
-            tcost[starts].tolist(),
+            tq[starts].tolist(),
             [CREATE] * starts.size,
             anchors[starts].tolist(),
             shape_ids[starts].tolist(),
@@ -965,12 +976,12 @@ def _ppe(pts, valid, prm: _Params, increments: list[float], min_points, refit, p
                 return
         W1, x1, y1, z1, c00, c01, c02, c11, c12, c22 = stats[j]
         if B.size <= 8:
-            best, k = math.inf, -1
+            best, k, true = math.inf, -1, math.inf
             for u in B.tolist():
-                e = _merged_error_py(stats[j], atoms[u])
-                if e < best or (e == best and u < k):
-                    best, k = e, u
-            best -= err[j]
+                inc = _merged_error_py(stats[j], atoms[u]) - err[j]
+                qi = float(_q(inc))
+                if qi < best or (qi == best and u < k):
+                    best, k, true = qi, u, inc
         else:
             w = aw[B]
             Wn = W1 + w
@@ -989,10 +1000,13 @@ def _ppe(pts, valid, prm: _Params, increments: list[float], min_points, refit, p
                 c12 + g * dy * dz,
                 c22 + g * dz * dz,
             )
-            emin = e.min()
-            best = float(emin) - err[j]
-            k = int(B[e == emin].min())
-        heapq.heappush(heap, (best, EXTEND, canon[j], k, j, version[j]))
+            inc = e - err[j]
+            qi = _q(inc)
+            best = float(qi.min())
+            tie = np.flatnonzero(qi == best)
+            i = tie[np.argmin(B[tie])]
+            k, true = int(B[i]), float(inc[i])
+        heapq.heappush(heap, (best, EXTEND, canon[j], k, j, version[j], true))
 
     def refresh_mrg(j: int) -> None:
         """Push plane j's best merge over all adjacent planes."""
@@ -1004,11 +1018,12 @@ def _ppe(pts, valid, prm: _Params, increments: list[float], min_points, refit, p
         for q in nb:
             c = _merged_error_py(sj, stats[q]) - ej - err[q]
             cq = canon[q]
-            key = (c, MERGE, cj, cq) if cj < cq else (c, MERGE, cq, cj)
+            qc = float(_q(c))
+            key = (qc, MERGE, cj, cq) if cj < cq else (qc, MERGE, cq, cj)
             if best is None or key < best[0]:
-                best = (key, q)
-        key, q = best
-        heapq.heappush(heap, key + (j, q, version[j], version[q]))
+                best = (key, q, c)
+        key, q, c = best
+        heapq.heappush(heap, key + (j, q, version[j], version[q], c))
 
     def link(j: int, k: int) -> None:
         """Ray k joined plane j: grow j's boundary and adjacency from k's neighbours."""
@@ -1056,13 +1071,14 @@ def _ppe(pts, valid, prm: _Params, increments: list[float], min_points, refit, p
                 while s < e:
                     c0, c1, c2, c3 = cells[s].tolist()
                     if free[c0] and free[c1] and free[c2] and free[c3]:
-                        item = (float(tcost[s]), CREATE, int(anchors[s]), int(shape_ids[s]), s, e)
+                        item = (float(tq[s]), CREATE, int(anchors[s]), int(shape_ids[s]), s, e)
                         heapq.heappush(heap, item)
                         break
                     s += 1
                 continue
             if cost > pending[0] and snapshot(cost):
                 break
+            true = float(tcost[s])
             j = len(members)
             members.append(list(cl))
             owner[cl] = j
@@ -1086,7 +1102,7 @@ def _ppe(pts, valid, prm: _Params, increments: list[float], min_points, refit, p
             refresh_ext(j)
             refresh_mrg(j)
         elif kind == EXTEND:
-            k, j, ver = item[3], item[4], item[5]
+            k, j, ver, true = item[3], item[4], item[5], item[6]
             if not alive[j] or ver != version[j]:
                 continue
             if not free[k]:
@@ -1110,7 +1126,7 @@ def _ppe(pts, valid, prm: _Params, increments: list[float], min_points, refit, p
             refresh_ext(j)
             refresh_mrg(j)
         else:
-            j, i, vj, vi = item[4], item[5], item[6], item[7]
+            j, i, vj, vi, true = item[4], item[5], item[6], item[7], item[8]
             if not alive[j] or vj != version[j]:
                 continue
             if not alive[i] or vi != version[i]:
@@ -1142,7 +1158,7 @@ def _ppe(pts, valid, prm: _Params, increments: list[float], min_points, refit, p
             refresh_ext(j)
             refresh_mrg(j)
         kinds.append(kind)
-        costs.append(cost)
+        costs.append(true)
         if bar is not None and since >= 4096:
             bar.update(since)
             since = 0
@@ -1212,14 +1228,16 @@ def extract_planes_reference(
         cands: list[tuple] = []
         free = (owner[cells] == -1).all(axis=1)
         for t in np.flatnonzero(free):
-            cands.append((float(tcost[t]), CREATE, int(anchors[t]), int(shape_ids[t]), t))
+            c = float(tcost[t])
+            cands.append((float(_q(c)), CREATE, int(anchors[t]), int(shape_ids[t]), c, t))
         for j, mem in planes.items():
             base = _ref_error([flat[mem]])[0]
             adj_atoms = sorted({u for k in mem for u in nbr[k] if u >= 0 and owner[u] == -1})
             errs = _ref_error([flat[mem + [u]] for u in adj_atoms])
             cj = min(mem)
             for u, e in zip(adj_atoms, errs):
-                cands.append((float(e - base), EXTEND, cj, u, j))
+                c = float(e - base)
+                cands.append((float(_q(c)), EXTEND, cj, u, c, j))
             adj_planes = sorted(
                 {int(owner[u]) for k in mem for u in nbr[k] if u >= 0 and owner[u] >= 0} - {j}
             )
@@ -1229,30 +1247,31 @@ def extract_planes_reference(
                 mq = planes[q]
                 e = _ref_error([flat[mem + mq], flat[mq]])
                 cq = min(mq)
-                cands.append((float(e[0] - base - e[1]), MERGE, min(cj, cq), max(cj, cq), j, q))
+                c = float(e[0] - base - e[1])
+                cands.append((float(_q(c)), MERGE, min(cj, cq), max(cj, cq), c, j, q))
         if not cands:
             break
         best = min(cands, key=lambda c: c[:4])
-        cost, kind = best[0], best[1]
+        cost, kind, true = best[0], best[1], best[4]
         if cost > prm.max_increment:
             reason = "max_increment"
             break
         if kind == CREATE:
-            cl = cells[best[4]].tolist()
+            cl = cells[best[5]].tolist()
             planes[next_id] = cl
             owner[cl] = next_id
             next_id += 1
         elif kind == EXTEND:
-            planes[best[4]].append(best[3])
-            owner[best[3]] = best[4]
+            planes[best[5]].append(best[3])
+            owner[best[3]] = best[5]
         else:
-            j, q = best[4], best[5]
+            j, q = best[5], best[6]
             planes[j] = planes[j] + planes.pop(q)
             owner[planes[j]] = j
         kinds.append(kind)
-        costs.append(cost)
+        costs.append(true)
         if callback is not None:
-            callback(kind, cost, owner.copy())
+            callback(kind, true, owner.copy())
     members = [np.asarray(m, dtype=np.int64) for m in planes.values()]
     return _finish(
         pts, valid, members, kinds, costs, reason, int((owner == -1).sum()), min_points, refit

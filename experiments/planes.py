@@ -349,7 +349,7 @@ def main(cfg: DictConfig) -> None:
         methods = list(cfg.methods)
         given = OmegaConf.to_container(cfg.tuned, resolve=True) if cfg.tuned else {}
         tuned, train_scores = {}, {}
-        ppe_abs = given.get("PPE (absolute e)")
+        ppe_abs = given.get("PPE_abs")  # the absolute-e variant (key without spaces for Hydra)
         for m in methods:
             if m in given:  # parameters supplied: no grid search
                 tuned[m] = given[m]

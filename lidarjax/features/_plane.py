@@ -42,6 +42,7 @@ from __future__ import annotations
 import dataclasses
 import heapq
 import math
+import struct
 from collections.abc import Callable, Sequence
 
 import equinox as eqx
@@ -80,6 +81,14 @@ def _q(cost):
     sharing 3 rays across a plane edge), and float64 rounding (which differs between
     formulas and between JAX and NumPy) must not decide between them."""
     return np.asarray(cost, dtype=np.float64).astype(np.float32).astype(np.float64)
+
+
+_F32 = struct.Struct("f")
+
+
+def _qs(cost: float) -> float:
+    """:func:`_q` of one Python float (round to nearest float32, ~0.3 µs)."""
+    return _F32.unpack(_F32.pack(cost))[0]
 
 
 # --------------------------------------------------------------------------------------
@@ -979,7 +988,7 @@ def _ppe(pts, valid, prm: _Params, increments: list[float], min_points, refit, p
             best, k, true = math.inf, -1, math.inf
             for u in B.tolist():
                 inc = _merged_error_py(stats[j], atoms[u]) - err[j]
-                qi = float(_q(inc))
+                qi = _qs(inc)
                 if qi < best or (qi == best and u < k):
                     best, k, true = qi, u, inc
         else:
@@ -1018,7 +1027,7 @@ def _ppe(pts, valid, prm: _Params, increments: list[float], min_points, refit, p
         for q in nb:
             c = _merged_error_py(sj, stats[q]) - ej - err[q]
             cq = canon[q]
-            qc = float(_q(c))
+            qc = _qs(c)
             key = (qc, MERGE, cj, cq) if cj < cq else (qc, MERGE, cq, cj)
             if best is None or key < best[0]:
                 best = (key, q, c)
@@ -1229,7 +1238,7 @@ def extract_planes_reference(
         free = (owner[cells] == -1).all(axis=1)
         for t in np.flatnonzero(free):
             c = float(tcost[t])
-            cands.append((float(_q(c)), CREATE, int(anchors[t]), int(shape_ids[t]), c, t))
+            cands.append((_qs(c), CREATE, int(anchors[t]), int(shape_ids[t]), c, t))
         for j, mem in planes.items():
             base = _ref_error([flat[mem]])[0]
             adj_atoms = sorted({u for k in mem for u in nbr[k] if u >= 0 and owner[u] == -1})
@@ -1237,7 +1246,7 @@ def extract_planes_reference(
             cj = min(mem)
             for u, e in zip(adj_atoms, errs):
                 c = float(e - base)
-                cands.append((float(_q(c)), EXTEND, cj, u, c, j))
+                cands.append((_qs(c), EXTEND, cj, u, c, j))
             adj_planes = sorted(
                 {int(owner[u]) for k in mem for u in nbr[k] if u >= 0 and owner[u] >= 0} - {j}
             )
@@ -1248,7 +1257,7 @@ def extract_planes_reference(
                 e = _ref_error([flat[mem + mq], flat[mq]])
                 cq = min(mq)
                 c = float(e[0] - base - e[1])
-                cands.append((float(_q(c)), MERGE, min(cj, cq), max(cj, cq), c, j, q))
+                cands.append((_qs(c), MERGE, min(cj, cq), max(cj, cq), c, j, q))
         if not cands:
             break
         best = min(cands, key=lambda c: c[:4])

@@ -22,7 +22,7 @@ from lidarjax.features import (
     plane_ranges,
     refit_segmentation,
 )
-from lidarjax.features._plane import _merge_stats, _points_stats, _stats_error
+from lidarjax.features._plane import _merge_py, _points_stats, _stats_error, _stats_error_py
 from lidarjax.raytrace import ray_plane
 
 
@@ -232,7 +232,11 @@ def test_stats_error_equals_lstsq_and_merges_exactly():
         Wa, ma, Ca = _points_stats(a)
         Wb, mb, Cb = _points_stats(b)
         np.testing.assert_allclose(_stats_error(Wa, ma, Ca), linearized_plane_error(a), rtol=1e-9)
-        W, m, C = _merge_stats(Wa, ma, Ca, Wb, mb, Cb)
+        st = _merge_py(
+            (float(Wa), *ma.tolist(), *Ca.tolist()), (float(Wb), *mb.tolist(), *Cb.tolist())
+        )
+        W, m, C = st[0], np.array(st[1:4]), np.array(st[4:])
+        np.testing.assert_allclose(_stats_error_py(st), _stats_error(W, m, C), rtol=1e-12)
         Wr, mr, Cr = _points_stats(np.concatenate([a, b]))
         np.testing.assert_allclose(W, Wr, rtol=1e-13)
         np.testing.assert_allclose(m, mr, rtol=1e-12)

@@ -322,17 +322,6 @@ def _outer6(d):
     return (d0 * d0, d0 * d1, d0 * d2, d1 * d1, d1 * d2, d2 * d2)
 
 
-def _merge_stats(W1, m1, C1, W2, m2, C2, xp=np):
-    """Combine two clusters' statistics (parallel-axis / Chan update)."""
-    W = W1 + W2
-    d = m2 - m1
-    f = W2 / W
-    m = m1 + d * f[..., None]
-    g = (W1 * f)[..., None]
-    C = C1 + C2 + g * xp.stack(_outer6(d), axis=-1)
-    return W, m, C
-
-
 def _adj6(c00, c01, c02, c11, c12, c22):
     """Adjugate of a symmetric 3 x 3 matrix, as its 6 unique entries (floats or arrays)."""
     return (
@@ -407,7 +396,7 @@ def _atom(w: float, p: list[float]) -> tuple:
 
 
 def _merge_py(a: tuple, b: tuple) -> tuple:
-    """:func:`_merge_stats` for one pair of clusters in plain Python floats."""
+    """Statistics of the union of two clusters (parallel-axis / Chan update), Python floats."""
     W1, x1, y1, z1, c00, c01, c02, c11, c12, c22 = a
     W2, x2, y2, z2, d00, d01, d02, d11, d12, d22 = b
     W = W1 + W2

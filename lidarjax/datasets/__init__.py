@@ -32,3 +32,17 @@ from ._synpeb import write_synpeb_pcd as write_synpeb_pcd
 from ._synthetic import OfficeWorld as OfficeWorld
 from ._synthetic import make_office as make_office
 from ._synthetic import simulate_scans as simulate_scans
+from ._velodyne import KittiSequence as KittiSequence
+from ._velodyne import NcltGroundTruth as NcltGroundTruth
+from ._velodyne import NcltHitsPacket as NcltHitsPacket
+from ._velodyne import iter_nclt_velodyne_hits as iter_nclt_velodyne_hits
+from ._velodyne import load_kitti_sequence as load_kitti_sequence
+from ._velodyne import nclt_ground_truth_se2 as nclt_ground_truth_se2
+from ._velodyne import read_kitti_velodyne as read_kitti_velodyne
+from ._velodyne import read_nclt_ground_truth as read_nclt_ground_truth
+from ._velodyne import read_nclt_velodyne_hits as read_nclt_velodyne_hits
+from ._velodyne import read_nclt_velodyne_sync as read_nclt_velodyne_sync
+from ._velodyne import write_kitti_velodyne as write_kitti_velodyne
+from ._velodyne import write_nclt_ground_truth as write_nclt_ground_truth
+from ._velodyne import write_nclt_velodyne_hits as write_nclt_velodyne_hits
+from ._velodyne import write_nclt_velodyne_sync as write_nclt_velodyne_sync

@@ -1,6 +1,6 @@
 """Feature extraction from lidar scans: polylines (PLE / PLE+, dissertation ch. 10) with the
 heuristic baselines of section 10.5 (Visvalingam, iterative endpoint fit, split-and-merge),
-and planes (PPE, ch. 11) with the MSAC and PEAC-style baselines."""
+planes (PPE, ch. 11) with the MSAC and PEAC-style baselines, and poles (ch. 12)."""
 
 from ._plane import TETROMINOES as TETROMINOES
 from ._plane import PlaneFit as PlaneFit
@@ -17,6 +17,14 @@ from ._plane import plane_ranges as plane_ranges
 from ._plane import refit_segmentation as refit_segmentation
 from ._plane_baselines import msac_planes as msac_planes
 from ._plane_baselines import peac_planes as peac_planes
+from ._poles import PoleConfig as PoleConfig
+from ._poles import Poles as Poles
+from ._poles import extract_poles as extract_poles
+from ._poles import extract_poles_from_occupancy as extract_poles_from_occupancy
+from ._poles import local_map_spec as local_map_spec
+from ._poles import mean_shift as mean_shift
+from ._poles import pole_score_image as pole_score_image
+from ._poles import pole_score_maps as pole_score_maps
 from ._polyline import AIC as AIC
 from ._polyline import AbstractStoppingCriterion as AbstractStoppingCriterion
 from ._polyline import MaxRMSE as MaxRMSE
@@ -66,4 +74,12 @@ __all__ = [
     "refit_segmentation",
     "msac_planes",
     "peac_planes",
+    "PoleConfig",
+    "Poles",
+    "pole_score_maps",
+    "pole_score_image",
+    "mean_shift",
+    "extract_poles",
+    "extract_poles_from_occupancy",
+    "local_map_spec",
 ]

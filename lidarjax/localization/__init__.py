@@ -1,5 +1,5 @@
 """Particle-filter localization (dissertation sections 7.6.1, 8.5.2 and 12.4.3) and
-gradient-based pose refinement."""
+gradient-based pose refinement, pole-landmark mapping and localization (ch. 12)."""
 
 from ._filter import (
     RESAMPLERS,
@@ -17,10 +17,32 @@ from ._filter import (
     stratified_resample,
     systematic_resample,
 )
+from ._landmarks import (
+    PoleLookup,
+    PoleMap,
+    PoleMeasurementModel,
+    build_pole_lookup,
+    map_poles,
+    merge_poles,
+    overlap_clusters,
+    pad_poles,
+    pole_log_likelihood_reference,
+    sliding_window_filter,
+)
 from ._poses import circular_mean, from_vector, relative_motion, take, to_vector, weighted_mean
 from ._scan import ScanModel
 
 __all__ = [
+    "PoleMap",
+    "overlap_clusters",
+    "merge_poles",
+    "sliding_window_filter",
+    "map_poles",
+    "PoleLookup",
+    "build_pole_lookup",
+    "PoleMeasurementModel",
+    "pole_log_likelihood_reference",
+    "pad_poles",
     "RESAMPLERS",
     "OdometryMotionModel",
     "ParticleFilter",

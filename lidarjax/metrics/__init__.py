@@ -1,6 +1,7 @@
 """Evaluation measures from the dissertation: map RMSE in p_ref (section 9.5.1), the
 pose-likelihood divergences of Eqs. (7.28), (7.29), (8.24)/(8.25), the polyline metrics of
-section 10.5 and the plane-segmentation metrics of chapter 11 (Hoover scores, k, RMSE)."""
+section 10.5, the plane-segmentation metrics of chapter 11 (Hoover scores, k, RMSE) and
+the trajectory errors of Table 12.2."""
 
 from ._maps import dirac_divergence as dirac_divergence
 from ._maps import gaussian_log_density as gaussian_log_density
@@ -18,6 +19,9 @@ from ._segmentation import HooverScores as HooverScores
 from ._segmentation import hoover_scores as hoover_scores
 from ._segmentation import k_value as k_value
 from ._segmentation import segmentation_rmse as segmentation_rmse
+from ._trajectory import TrajectoryErrors as TrajectoryErrors
+from ._trajectory import interpolate_at_arclength as interpolate_at_arclength
+from ._trajectory import trajectory_errors as trajectory_errors
 
 __all__ = [
     "p_ref",
@@ -36,4 +40,7 @@ __all__ = [
     "hoover_scores",
     "k_value",
     "segmentation_rmse",
+    "TrajectoryErrors",
+    "trajectory_errors",
+    "interpolate_at_arclength",
 ]

@@ -1,0 +1,286 @@
+"""Planar trajectory error metrics (the columns of dissertation Table 12.2).
+
+Following section 12.5.1, the deviation of an estimated trajectory from ground truth is
+evaluated every ``spacing_m`` (1 m) of distance travelled along the ground-truth trajectory,
+so that standing still or driving slowly does not weight the result.
+
+Definitions. Both trajectories are time-aligned (row ``i`` of each belongs to the same
+timestamp). Let ``s_i`` be the cumulative ground-truth arc length at row ``i`` (straight
+segments between consecutive rows). The evaluation points are ``s = 0, d, 2d, ...,
+floor(L / d) d`` with ``d = spacing_m`` and ``L`` the total arc length. At each ``s`` both
+trajectories are interpolated between the two bracketing rows ``i, i + 1``
+(``s_i <= s <= s_{i+1}``) with the same fraction ``t = (s - s_i) / (s_{i+1} - s_i)``:
+x and y linearly, yaw along the shortest arc. With the ground-truth pose ``(x, y, psi)`` and
+the position error ``e = est_xy - gt_xy``:
+
+- longitudinal error ``e . (cos psi, sin psi)`` (along the ground-truth heading),
+- lateral error ``e . (-sin psi, cos psi)`` (along the left normal),
+- heading error ``est_yaw - psi`` wrapped to ``(-180, 180]`` degrees.
+
+``delta_*`` are means of absolute values, ``sigma_*`` population standard deviations
+(``ddof=0``) of the signed errors, ``rmse_*`` root mean squares. The heading ``psi`` is the
+ground-truth *yaw* column, not the direction of travel.
+
+NumPy only (evaluation code, not a hot path).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import numpy as np
+
+__all__ = ["TrajectoryErrors", "interpolate_at_arclength", "trajectory_errors"]
+
+_COUNT_RTOL = 1e-9  # L / spacing within this relative tolerance of an integer counts as one
+
+
+@dataclass(frozen=True)
+class TrajectoryErrors:
+    """Trajectory error statistics over the evaluation points (Table 12.2 columns).
+
+    Attributes:
+        delta_pos_m: Mean absolute position error ``mean |e|`` (m), the ``Δpos`` column.
+        rmse_pos_m: Root mean square position error (m).
+        delta_lat_m: Mean absolute lateral error (m), perpendicular to the ground-truth
+            heading (positive = estimate to the left).
+        sigma_lat_m: Population standard deviation of the signed lateral error (m).
+        delta_lon_m: Mean absolute longitudinal error (m), along the ground-truth heading
+            (positive = estimate ahead).
+        sigma_lon_m: Population standard deviation of the signed longitudinal error (m).
+        delta_ang_deg: Mean absolute heading error (degrees), errors wrapped to (-180, 180].
+        sigma_ang_deg: Population standard deviation of the signed heading error (degrees).
+        rmse_ang_deg: Root mean square heading error (degrees).
+        max_pos_m: Largest position error (m).
+        n: Number of evaluation points used.
+    """
+
+    delta_pos_m: float
+    rmse_pos_m: float
+    delta_lat_m: float
+    sigma_lat_m: float
+    delta_lon_m: float
+    sigma_lon_m: float
+    delta_ang_deg: float
+    sigma_ang_deg: float
+    rmse_ang_deg: float
+    max_pos_m: float
+    n: int
+
+    def as_dict(self) -> dict[str, Any]:
+        """Field name -> value (floats and the int ``n``)."""
+        return asdict(self)
+
+
+def _wrap(angle: np.ndarray) -> np.ndarray:
+    """Wrap angles (rad) to ``(-pi, pi]``."""
+    return np.pi - np.mod(np.pi - angle, 2.0 * np.pi)
+
+
+def _bracket(arclength: np.ndarray, s_query: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Bracketing row ``i`` and fraction ``t`` with ``s = (1 - t) s_i + t s_{i+1}``.
+
+    ``i`` is the row before the first row whose arc length reaches ``s`` (so a query equal
+    to a row's arc length gives ``t = 1`` on the segment ending there, except ``s = s_0``
+    which gives ``i = 0, t = 0``); zero-length segments give ``t = 0``.
+    """
+    n = arclength.shape[0]
+    j = np.searchsorted(arclength, s_query, side="left")
+    i = np.clip(j - 1, 0, n - 2)
+    ds = arclength[i + 1] - arclength[i]
+    safe = np.where(ds > 0, ds, 1.0)
+    t = np.where(ds > 0, (s_query - arclength[i]) / safe, 0.0)
+    return i, np.clip(t, 0.0, 1.0)
+
+
+def _interp(xy_yaw: np.ndarray, i: np.ndarray, t: np.ndarray) -> np.ndarray:
+    a, b = xy_yaw[i], xy_yaw[i + 1]
+    # Where a weight is exactly 0 the other row is returned unchanged (even if the unused
+    # row holds NaN).
+    xy = np.where(
+        (t == 0.0)[:, None],
+        a[:, :2],
+        np.where(
+            (t == 1.0)[:, None], b[:, :2], (1.0 - t)[:, None] * a[:, :2] + t[:, None] * b[:, :2]
+        ),
+    )
+    yaw = np.where(
+        t == 0.0,
+        a[:, 2],
+        np.where(t == 1.0, b[:, 2], a[:, 2] + t * _wrap(b[:, 2] - a[:, 2])),
+    )
+    return np.concatenate([xy, _wrap(yaw)[:, None]], axis=1)
+
+
+def interpolate_at_arclength(
+    xy_yaw: np.ndarray, s_query: np.ndarray, arclength: np.ndarray
+) -> np.ndarray:
+    """Interpolate planar poses at given arc lengths.
+
+    For each query the bracketing rows ``i, i + 1`` with ``arclength[i] <= s <=
+    arclength[i+1]`` are found; x and y are interpolated linearly and yaw along the shortest
+    arc with the fraction ``t = (s - arclength[i]) / (arclength[i+1] - arclength[i])``. A
+    query equal to a row's arc length returns that row exactly (the first such row when
+    the arc length is constant over several rows).
+
+    Args:
+        xy_yaw: ``[N, 3]`` poses x (m), y (m), yaw (rad), ``N >= 2``.
+        s_query: ``[M]`` arc lengths (m) within ``[arclength[0], arclength[-1]]``.
+        arclength: ``[N]`` non-decreasing arc length (m) of each row (need not be the arc
+            length of ``xy_yaw`` itself, e.g. the ground truth's for an estimate).
+
+    Returns:
+        float64 ``[M, 3]`` interpolated poses, yaw wrapped to ``(-pi, pi]``.
+
+    Raises:
+        ValueError: Bad shapes, fewer than 2 rows, ``arclength`` not finite and
+            non-decreasing, or a query non-finite or outside the arc-length range.
+    """
+    xy_yaw = np.asarray(xy_yaw, dtype=np.float64)
+    s_query = np.asarray(s_query, dtype=np.float64)
+    arclength = np.asarray(arclength, dtype=np.float64)
+    if xy_yaw.ndim != 2 or xy_yaw.shape[1] != 3:
+        raise ValueError(f"xy_yaw must have shape [N, 3], got {xy_yaw.shape}")
+    if xy_yaw.shape[0] < 2:
+        raise ValueError(f"xy_yaw needs at least 2 rows, got {xy_yaw.shape[0]}")
+    if arclength.shape != (xy_yaw.shape[0],):
+        raise ValueError(f"arclength must have shape [{xy_yaw.shape[0]}], got {arclength.shape}")
+    if not np.isfinite(arclength).all() or np.any(np.diff(arclength) < 0):
+        raise ValueError("arclength must be finite and non-decreasing")
+    if s_query.ndim != 1:
+        raise ValueError(f"s_query must have shape [M], got {s_query.shape}")
+    if not np.isfinite(s_query).all() or np.any(
+        (s_query < arclength[0]) | (s_query > arclength[-1])
+    ):
+        raise ValueError(
+            f"s_query must be finite and within [{arclength[0]}, {arclength[-1]}] "
+            f"(got range [{s_query.min(initial=np.inf)}, {s_query.max(initial=-np.inf)}])"
+        )
+    i, t = _bracket(arclength, s_query)
+    return _interp(xy_yaw, i, t)
+
+
+def _check_poses(name: str, arr: Any) -> np.ndarray:
+    out = np.asarray(arr, dtype=np.float64)
+    if out.ndim != 2 or out.shape[1] != 3:
+        raise ValueError(f"{name} must have shape [N, 3] (x, y, yaw), got {out.shape}")
+    return out
+
+
+def _ground_truth_arclength(gt_xy: np.ndarray) -> np.ndarray:
+    """Cumulative arc length, joining consecutive rows with finite positions.
+
+    Rows with non-finite positions get the arc length of the previous finite row (0 before
+    the first one), so the result is finite and non-decreasing.
+    """
+    finite = np.isfinite(gt_xy).all(axis=1)
+    idx = np.flatnonzero(finite)
+    arc = np.zeros(gt_xy.shape[0])
+    if idx.size >= 2:
+        steps = np.linalg.norm(np.diff(gt_xy[idx], axis=0), axis=1)
+        arc_finite = np.concatenate([[0.0], np.cumsum(steps)])
+        # index of the last finite row at or before each row
+        last = np.maximum.accumulate(np.where(finite, np.arange(gt_xy.shape[0]), -1))
+        pos = np.searchsorted(idx, np.maximum(last, idx[0]))
+        arc = np.where(last >= 0, arc_finite[pos], 0.0)
+    return arc
+
+
+def trajectory_errors(
+    estimate_xy_yaw: np.ndarray,
+    truth_xy_yaw: np.ndarray,
+    *,
+    spacing_m: float = 1.0,
+    valid: np.ndarray | None = None,
+) -> TrajectoryErrors:
+    """Errors of an estimated planar trajectory w.r.t. ground truth, every ``spacing_m``.
+
+    See the module docstring for the definitions. Rows with ``valid == False`` (e.g. before
+    the filter starts, or NaN ground truth) may hold NaN; an evaluation point is skipped if
+    a bracketing row with nonzero interpolation weight is invalid (a point that coincides
+    with a row needs only that row). The ground-truth arc length joins consecutive rows
+    whose ground-truth position is finite, so skipping invalid rows does not shorten it.
+
+    Args:
+        estimate_xy_yaw: ``[N, 3]`` estimated x (m), y (m), yaw (rad).
+        truth_xy_yaw: ``[N, 3]`` ground-truth x (m), y (m), yaw (rad), same timestamps.
+        spacing_m: Distance between evaluation points along the ground truth (m), > 0.
+        valid: Optional bool ``[N]``; ``None`` means all rows are valid.
+
+    Returns:
+        :class:`TrajectoryErrors` over the ``n`` used evaluation points (at most
+        ``floor(L / spacing_m) + 1``, ``L`` the ground-truth length; a ratio ``L /
+        spacing_m`` within a relative 1e-9 of an integer counts as that integer).
+
+    Raises:
+        ValueError: Shapes do not match, fewer than 2 rows, NaN/inf in a valid row,
+            ``spacing_m`` not a positive finite number, ``valid`` not a bool ``[N]`` array,
+            the ground truth never moves, or no evaluation point has valid rows. The
+            message names the offending argument.
+    """
+    est = _check_poses("estimate_xy_yaw", estimate_xy_yaw)
+    gt = _check_poses("truth_xy_yaw", truth_xy_yaw)
+    if est.shape != gt.shape:
+        raise ValueError(
+            f"estimate_xy_yaw and truth_xy_yaw must have the same shape, got {est.shape} "
+            f"and {gt.shape}"
+        )
+    n_rows = gt.shape[0]
+    if n_rows < 2:
+        raise ValueError(f"truth_xy_yaw needs at least 2 rows, got {n_rows}")
+    spacing = float(spacing_m)
+    if not np.isfinite(spacing) or spacing <= 0:
+        raise ValueError(f"spacing_m must be a positive finite number, got {spacing_m!r}")
+    if valid is None:
+        ok = np.ones(n_rows, dtype=bool)
+    else:
+        ok = np.asarray(valid)
+        if ok.dtype != np.bool_ or ok.shape != (n_rows,):
+            raise ValueError(
+                f"valid must be a bool array of shape [{n_rows}], got dtype {ok.dtype} and "
+                f"shape {ok.shape}"
+            )
+    for name, arr in (("estimate_xy_yaw", est), ("truth_xy_yaw", gt)):
+        bad = ok & ~np.isfinite(arr).all(axis=1)
+        if bad.any():
+            raise ValueError(
+                f"{name} holds NaN or infinite values in valid row {int(np.flatnonzero(bad)[0])}"
+            )
+
+    arc = _ground_truth_arclength(gt[:, :2])
+    length = float(arc[-1])
+    if length <= 0:
+        raise ValueError("truth_xy_yaw never moves (total arc length 0)")
+    count = int(np.floor(length / spacing * (1.0 + _COUNT_RTOL))) + 1
+    s = np.minimum(np.arange(count) * spacing, length)
+
+    i, t = _bracket(arc, s)
+    use = (ok[i] | (t == 1.0)) & (ok[i + 1] | (t == 0.0))
+    if not use.any():
+        raise ValueError("no evaluation point lies between valid rows (see valid)")
+    i, t = i[use], t[use]
+    e_pose = _interp(est, i, t)
+    g_pose = _interp(gt, i, t)
+
+    err = e_pose[:, :2] - g_pose[:, :2]
+    cos, sin = np.cos(g_pose[:, 2]), np.sin(g_pose[:, 2])
+    lon = err[:, 0] * cos + err[:, 1] * sin
+    lat = -err[:, 0] * sin + err[:, 1] * cos
+    dist = np.hypot(err[:, 0], err[:, 1])
+    ang = np.degrees(_wrap(e_pose[:, 2] - g_pose[:, 2]))
+    ang = np.where(ang <= -180.0, 180.0, ang)  # guard the (-180, 180] convention
+
+    return TrajectoryErrors(
+        delta_pos_m=float(dist.mean()),
+        rmse_pos_m=float(np.sqrt(np.mean(dist**2))),
+        delta_lat_m=float(np.abs(lat).mean()),
+        sigma_lat_m=float(lat.std()),
+        delta_lon_m=float(np.abs(lon).mean()),
+        sigma_lon_m=float(lon.std()),
+        delta_ang_deg=float(np.abs(ang).mean()),
+        sigma_ang_deg=float(ang.std()),
+        rmse_ang_deg=float(np.sqrt(np.mean(ang**2))),
+        max_pos_m=float(dist.max()),
+        n=int(i.shape[0]),
+    )

@@ -20,6 +20,7 @@ from lidarjax.localization import (
     overlap_clusters,
     pad_poles,
     pole_log_likelihood_reference,
+    segment_scans,
     sliding_window_filter,
     to_vector,
 )
@@ -178,3 +179,14 @@ def test_bad_input():
         merge_poles([Poles(np.array([[np.nan, 0.0]]), np.ones(1), np.ones(1))])
     with pytest.raises(ValueError, match="width_m"):
         overlap_clusters(np.zeros((3, 2)), np.ones(2))
+
+
+def test_segment_scans():
+    s = np.array([0.0, 0.5, 1.0, 1.4, 1.6, 1.6, 1.6, 1.6, 2.9, 3.1, 3.5])
+    xy = np.column_stack([s, np.zeros_like(s)])
+    segs = segment_scans(xy, 1.5)
+    assert [list(x) for x in segs] == [[0, 1, 2, 3], [4, 5, 6, 7, 8]]
+    capped = segment_scans(xy, 1.5, max_scans=2)
+    assert [list(x) for x in capped] == [[0, 3], [4, 8]]
+    with pytest.raises(ValueError, match="segment_m"):
+        segment_scans(xy, 0.0)

@@ -46,3 +46,17 @@ from ._velodyne import write_kitti_velodyne as write_kitti_velodyne
 from ._velodyne import write_nclt_ground_truth as write_nclt_ground_truth
 from ._velodyne import write_nclt_velodyne_hits as write_nclt_velodyne_hits
 from ._velodyne import write_nclt_velodyne_sync as write_nclt_velodyne_sync
+from ._urban import BOX_KINDS as BOX_KINDS
+from ._urban import HDL32E_ELEVATIONS_DEG as HDL32E_ELEVATIONS_DEG
+from ._urban import POLE_KINDS as POLE_KINDS
+from ._urban import LidarSpec as LidarSpec
+from ._urban import UrbanScan as UrbanScan
+from ._urban import UrbanTrajectory as UrbanTrajectory
+from ._urban import UrbanWorld as UrbanWorld
+from ._urban import hdl32e as hdl32e
+from ._urban import load_urban_trajectory as load_urban_trajectory
+from ._urban import make_urban_world as make_urban_world
+from ._urban import simulate_scan as simulate_urban_scan
+from ._urban import simulate_urban_scans as simulate_urban_scans
+from ._urban import urban_session as urban_session
+from ._urban import wheel_odometry as wheel_odometry

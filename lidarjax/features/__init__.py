@@ -20,6 +20,7 @@ from ._plane_baselines import peac_planes as peac_planes
 from ._poles import PoleConfig as PoleConfig
 from ._poles import Poles as Poles
 from ._poles import extract_poles as extract_poles
+from ._poles import fast_occupancy as fast_occupancy
 from ._poles import extract_poles_from_occupancy as extract_poles_from_occupancy
 from ._poles import local_map_spec as local_map_spec
 from ._poles import mean_shift as mean_shift
@@ -82,4 +83,5 @@ __all__ = [
     "extract_poles",
     "extract_poles_from_occupancy",
     "local_map_spec",
+    "fast_occupancy",
 ]

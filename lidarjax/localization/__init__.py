@@ -26,6 +26,7 @@ from ._landmarks import (
     merge_poles,
     overlap_clusters,
     pad_poles,
+    segment_scans,
     pole_log_likelihood_reference,
     sliding_window_filter,
 )
@@ -43,6 +44,7 @@ __all__ = [
     "PoleMeasurementModel",
     "pole_log_likelihood_reference",
     "pad_poles",
+    "segment_scans",
     "RESAMPLERS",
     "OdometryMotionModel",
     "ParticleFilter",

@@ -48,6 +48,7 @@ __all__ = [
     "PoleMeasurementModel",
     "pole_log_likelihood_reference",
     "pad_poles",
+    "segment_scans",
 ]
 
 
@@ -227,6 +228,8 @@ class PoleLookup(eqx.Module):
             centre's nearest-landmark distance and ``h`` the half diagonal: this contains
             the nearest landmark of every point of the cell whose nearest distance is below
             ``d_max``.
+        cand_x, cand_y: ``[k nx*ny]`` the candidates' coordinates, slot-major (padding far
+            away), so a query is ``k`` scalar gathers and element-wise minima.
         d_max: distances are clipped here (m); points off the table get ``d_max``.
         n_truncated: number of cells whose candidate list exceeded ``k`` (0 means every
             query is exact).
@@ -236,22 +239,31 @@ class PoleLookup(eqx.Module):
     origin: Float[Array, " 2"]
     cell_m: float = eqx.field(static=True)
     table: Int[Array, "nx ny k"]
+    cand_x: Float[Array, "k c"]
+    cand_y: Float[Array, "k c"]
     d_max: Float[Array, ""]
     n_truncated: int = eqx.field(static=True)
+
+    def nearest_distance_xy(
+        self, x: Float[Array, "*b"], y: Float[Array, "*b"]
+    ) -> Float[Array, "*b"]:
+        """``min(min_l ||(x, y) - l||, d_max)`` for every point given as coordinate arrays."""
+        nx, ny, k = self.table.shape
+        i = jnp.floor((x - self.origin[0]) / self.cell_m).astype(jnp.int32)
+        j = jnp.floor((y - self.origin[1]) / self.cell_m).astype(jnp.int32)
+        inside = (i >= 0) & (i < nx) & (j >= 0) & (j < ny)
+        flat = jnp.clip(i, 0, nx - 1) * ny + jnp.clip(j, 0, ny - 1)
+        best = None
+        for slot in range(k):  # static, small: element-wise minima vectorise well on CPU
+            d2 = (self.cand_x[slot][flat] - x) ** 2 + (self.cand_y[slot][flat] - y) ** 2
+            best = d2 if best is None else jnp.minimum(best, d2)
+        d = jnp.sqrt(jnp.minimum(best, self.d_max**2))
+        return jnp.where(inside, d, self.d_max)
 
     def nearest_distance(self, points: Float[Array, "*b 2"]) -> Float[Array, "*b"]:
         """``min(min_l ||p - l||, d_max)`` for every point."""
         points = jnp.asarray(points, self.landmarks.dtype)
-        nx, ny, _ = self.table.shape
-        ij = jnp.floor((points - self.origin) / self.cell_m).astype(jnp.int32)
-        inside = (ij[..., 0] >= 0) & (ij[..., 0] < nx) & (ij[..., 1] >= 0) & (ij[..., 1] < ny)
-        ij = jnp.clip(ij, 0, jnp.asarray([nx - 1, ny - 1]))
-        cand = self.table[ij[..., 0], ij[..., 1]]  # [*b k]
-        lm = self.landmarks[jnp.maximum(cand, 0)]  # [*b k 2]
-        d2 = jnp.sum((lm - points[..., None, :]) ** 2, axis=-1)
-        d2 = jnp.where(cand >= 0, d2, jnp.inf)
-        d = jnp.sqrt(jnp.min(d2, axis=-1))
-        return jnp.where(inside, jnp.minimum(d, self.d_max), self.d_max)
+        return self.nearest_distance_xy(points[..., 0], points[..., 1])
 
 
 def build_pole_lookup(
@@ -299,12 +311,16 @@ def build_pole_lookup(
     if idx.shape[1] < k:
         idx = np.concatenate([idx, np.full((len(idx), k - idx.shape[1]), -1)], 1)
     table = idx.reshape(nx, ny, k).astype(np.int32)
+    far = 1e6 + float(np.max(np.abs(xy)))  # padding: beyond d_max from every query on the table
+    cand = np.where((idx >= 0)[..., None], xy[np.maximum(idx, 0)], far)  # [cells k 2]
     dtype = jnp.result_type(float)
     return PoleLookup(
         jnp.asarray(xy, dtype),
         jnp.asarray(lo, dtype),
         float(cell_m),
         jnp.asarray(table),
+        jnp.asarray(cand[..., 0].T, dtype),
+        jnp.asarray(cand[..., 1].T, dtype),
         jnp.asarray(d_max_m, dtype),
         n_trunc,
     )
@@ -367,8 +383,10 @@ class PoleMeasurementModel(eqx.Module):
         poles_xy, mask = z
         dtype = self.lookup.landmarks.dtype
         poles_xy = jnp.asarray(poles_xy, dtype)
-        world = jax.vmap(lambda T: jax.vmap(T.apply)(poles_xy))(particles)  # [n K 2]
-        d = self.lookup.nearest_distance(world)
+        prm = particles.parameters().astype(dtype)  # [n 4]: cos, sin, x, y (jaxlie SE2)
+        c, s, x, y = (prm[:, i : i + 1] for i in range(4))
+        px, py = poles_xy[:, 0], poles_xy[:, 1]
+        d = self.lookup.nearest_distance_xy(x + c * px - s * py, y + s * px + c * py)  # [n K]
         dens = jnp.exp(-0.5 * d * d / self.var_m2) / jnp.sqrt(2 * jnp.pi * self.var_m2)
         return jnp.sum(jnp.where(mask, jnp.log(dens + self.eps), 0.0), axis=-1)
 
@@ -419,3 +437,43 @@ def pad_poles(poles_robot: Sequence[Poles | None], k: int) -> tuple[np.ndarray, 
         xy[t, : len(order)] = p.xy[order]
         mask[t, : len(order)] = True
     return xy, mask
+
+
+def segment_scans(
+    xy: ArrayLike, segment_m: float = 1.5, *, max_scans: int | None = None
+) -> list[np.ndarray]:
+    """Split a trajectory into segments of equal length for local maps (section 12.4.2).
+
+    Segment ``i`` holds the scans whose arc length lies in ``[i L, (i + 1) L)``; the last,
+    incomplete segment is dropped. With ``max_scans``, a segment with more scans (e.g. the
+    vehicle waiting at a light) keeps ``max_scans`` of them, evenly spread and always
+    including its last scan.
+
+    Args:
+        xy: ``[N 2]`` positions (m) of the scans in trajectory order.
+        segment_m: segment length ``L`` (m).
+        max_scans: optional cap on the scans per segment.
+
+    Returns:
+        Per segment, the increasing scan indices (the last one is the segment's end, where
+        its local map becomes available).
+    """
+    xy = np.asarray(xy, float)
+    if xy.ndim != 2 or xy.shape[1] != 2 or not np.all(np.isfinite(xy)):
+        raise ValueError(f"xy must be finite with shape [N, 2], got {xy.shape}")
+    if not (segment_m > 0 and math.isfinite(segment_m)):
+        raise ValueError(f"segment_m must be finite and > 0, got {segment_m!r}")
+    if max_scans is not None and (not isinstance(max_scans, int) or max_scans < 1):
+        raise ValueError(f"max_scans must be a positive int or None, got {max_scans!r}")
+    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(xy, axis=0), axis=1))])
+    seg = np.floor(arc / segment_m).astype(int)
+    out = []
+    for i in range(int(seg[-1])):  # the segment containing the last scan is incomplete
+        idx = np.flatnonzero(seg == i)
+        if len(idx) == 0:
+            continue
+        if max_scans is not None and len(idx) > max_scans:
+            pick = np.round(np.linspace(0, len(idx) - 1, max_scans)).astype(int)
+            idx = idx[np.unique(pick)]
+        out.append(idx)
+    return out

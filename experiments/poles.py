@@ -39,6 +39,7 @@ import matplotlib
 matplotlib.use("Agg")
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
+import jaxlie  # noqa: E402
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from hydra.core.hydra_config import HydraConfig  # noqa: E402
@@ -69,7 +70,7 @@ from lidarjax.localization import (  # noqa: E402
     to_vector,
 )
 from lidarjax.metrics import trajectory_errors  # noqa: E402
-from lidarjax.rays import HIT, SUB, SUP, RayBatch  # noqa: E402
+from lidarjax.rays import HIT, SUB, RayBatch, from_spinning_scan  # noqa: E402
 
 # Table 12.1 (NCLT, 27 sessions) and Table 12.2 (KITTI) of the dissertation.
 PAPER_121 = {"delta_pos_m_mean": 0.284, "delta_pos_m_mean_wo_barrels": 0.200}
@@ -96,36 +97,26 @@ FIELDS_122 = (
 # ----------------------------------------------------------------------------- local maps
 
 
-def make_rays(
-    ranges: list[np.ndarray], directions: np.ndarray, poses: np.ndarray, lidar, n_pad: int
-) -> RayBatch:
+def make_rays(ranges, directions, poses, lidar, n_pad: int) -> RayBatch:
     """World-frame rays of ``len(ranges)`` scans taken at ``poses [m 3]`` (x, y, yaw),
     padded with ignored (SUB) rays to ``n_pad`` scans so every local map has one shape."""
-    n = directions.shape[0]
-    m = len(ranges)
-    c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
-    d = np.empty((n_pad, n, 3), np.float32)
-    d[:m, :, 0] = c[:, None] * directions[:, 0] - s[:, None] * directions[:, 1]
-    d[:m, :, 1] = s[:, None] * directions[:, 0] + c[:, None] * directions[:, 1]
-    d[:m, :, 2] = directions[:, 2]
-    d[m:] = directions
-    o = np.zeros((n_pad, n, 3), np.float32)
-    o[:m, :, :2] = poses[:, None, :2]
-    o[:m, :, 2] = lidar.mount_height_m
-    r = np.zeros((n_pad, n), np.float32)
-    kind = np.full((n_pad, n), SUB, np.int32)
-    rr = np.stack(ranges)
-    hit = np.isfinite(rr)
-    r[:m] = np.where(hit, rr, lidar.max_range_m)
-    kind[:m] = np.where(hit, HIT, SUP)
+    m, n = len(ranges), directions.shape[0]
+    yaw = jaxlie.SO3.from_z_radians(jnp.asarray(poses[:, 2]))
+    xyz = jnp.column_stack([jnp.asarray(poses[:, :2]), jnp.full(m, lidar.mount_height_m)])
+    T = jaxlie.SE3.from_rotation_and_translation(yaw, xyz)
+    rays = from_spinning_scan(T, directions, np.stack(ranges), lidar.min_range_m, lidar.max_range_m)
+    rays = rays.flatten()
+    pad = (n_pad - m) * n
+
+    def cat(x, fill):
+        return jnp.concatenate(
+            [x, jnp.broadcast_to(jnp.asarray(fill, x.dtype), (pad, *x.shape[1:]))]
+        )
+
     return RayBatch(
-        jnp.asarray(o.reshape(-1, 3)),
-        jnp.asarray(d.reshape(-1, 3)),
-        jnp.asarray(r.reshape(-1)),
-        jnp.asarray(kind.reshape(-1)),
-        jnp.float32(lidar.min_range_m),
-        jnp.float32(lidar.max_range_m),
-    )
+        cat(rays.origins, 0.0), cat(rays.directions, [1.0, 0.0, 0.0]), cat(rays.ranges, 0.0),
+        cat(rays.kind, SUB), rays.r_min, rays.r_max,
+    )  # fmt: skip
 
 
 def local_maps(world, gt, reg, segments, lidar, pcfg, seed, n_pad, desc, keep=None):
@@ -148,7 +139,8 @@ def local_maps(world, gt, reg, segments, lidar, pcfg, seed, n_pad, desc, keep=No
         t0 = time.perf_counter()
         if k == keep:
             poles, occ = extract_poles(rays, spec, pcfg, return_occupancy=True)
-            kept = (np.asarray(occ), spec, seg)
+            hit = np.asarray(rays.kind) == HIT
+            kept = (np.asarray(occ), spec, seg, np.asarray(rays.endpoints())[hit])
         else:
             poles = extract_poles(rays, spec, pcfg)
         secs.append(time.perf_counter() - t0)
@@ -260,19 +252,32 @@ def plot_map(path, pole_map, world, gt, est, title):
     plt.close(fig)
 
 
-def plot_local_map(path, occ, spec, poles, world, pcfg):
+def plot_local_map(path, occ, spec, points, poles, world, pcfg):
+    """Figure 12.3 analogue: the local map's reflections coloured by height with the
+    extracted poles, and the 2-D score map S."""
     from lidarjax.features import pole_score_image, pole_score_maps
 
-    q = np.asarray(pole_score_maps(jnp.asarray(occ), tuple(pcfg.widths), pcfg.free_cells)).max(0)
-    s, _, _ = pole_score_image(jnp.asarray(q), pcfg.q_min, pcfg.min_cells)
+    q = np.asarray(pole_score_maps(jnp.asarray(occ), tuple(pcfg.widths), pcfg.free_cells))
+    s, _, _ = pole_score_image(jnp.asarray(q.max(0)), pcfg.q_min, pcfg.min_cells)
     o = np.asarray(spec.origin)
     res = float(spec.resolution)
     ext = [o[0], o[0] + occ.shape[0] * res, o[1], o[1] + occ.shape[1] * res]
+    inbox = (
+        (points[:, 0] > ext[0]) & (points[:, 0] < ext[1])
+        & (points[:, 1] > ext[2]) & (points[:, 1] < ext[3])
+        & (points[:, 2] > 0.05) & (points[:, 2] < o[2] + occ.shape[2] * res)
+    )  # fmt: skip
+    pts = points[inbox]
     fig, axes = plt.subplots(1, 2, figsize=(13, 6.2))
-    axes[0].imshow(occ.max(2).T, origin="lower", extent=ext, cmap="gray_r", vmin=0, vmax=1)
-    axes[0].set_title("occupancy (max over height)")
-    axes[1].imshow(np.asarray(s).T, origin="lower", extent=ext, cmap="viridis", vmin=0, vmax=1)
-    axes[1].set_title("2-D pole score S, extracted poles (squares), true poles (o)")
+    sc = axes[0].scatter(pts[:, 0], pts[:, 1], c=pts[:, 2], s=0.3, cmap="viridis", vmin=0, vmax=5)
+    fig.colorbar(sc, ax=axes[0], label="height [m]", shrink=0.8)
+    axes[0].set_title(f"local map: {len(pts)} reflections above ground, extracted poles")
+    axes[0].set_xlim(ext[:2])
+    axes[0].set_ylim(ext[2:])
+    axes[0].set_aspect("equal")
+    im = axes[1].imshow(np.asarray(s).T, origin="lower", extent=ext, cmap="magma", vmin=0, vmax=1)
+    fig.colorbar(im, ax=axes[1], label="pole score S", shrink=0.8)
+    axes[1].set_title("2-D pole score S; squares: extracted, circles: true poles")
     inside = (
         (world.pole_xy[:, 0] > ext[0]) & (world.pole_xy[:, 0] < ext[1])
         & (world.pole_xy[:, 1] > ext[2]) & (world.pole_xy[:, 1] < ext[3])
@@ -283,7 +288,7 @@ def plot_local_map(path, occ, spec, poles, world, pcfg):
                 Rectangle((x - w / 2, y - w / 2), w, w, fill=False, color="tab:orange", lw=1.5)
             )
         for (x, y), r in zip(world.pole_xy[inside], world.pole_radius_m[inside], strict=True):
-            ax.add_patch(plt.Circle((x, y), max(r, 0.15), fill=False, color="tab:red", lw=1))
+            ax.add_patch(plt.Circle((x, y), max(r, 0.15), fill=False, color="tab:cyan", lw=1))
         ax.set_xlabel("x [m]")
         ax.set_ylabel("y [m]")
     fig.tight_layout()
@@ -309,32 +314,37 @@ def plot_errors(path, curves, arc):
 
 
 def table(res) -> str:
+    r, mp, loc = res["route"], res["map"], res["localization"]
+    head = (
+        "| Session | changes | f_map [%] | Δpos [m] | RMSE_pos [m] | Δang [°] | RMSE_ang [°] "
+        "| max [m] | diverged [%] |"
+    )
     lines = [
         "### Table 12.1 analogue: map from session 0, localize every session",
         "",
-        f"Route: KITTI-00 poses {res['route']['start']}..{res['route']['stop']} "
-        f"({res['route']['length_m']:.0f} m, {res['route']['n_scans']} scans); "
-        f"{res['localization']['runs']} runs x {res['localization']['n_particles']} particles per session; "
-        f"map: {res['map']['n_landmarks']} landmarks, precision {100 * res['map']['precision']:.1f} %, "
-        f"recall {100 * res['map']['recall']:.1f} % (within 0.5 m), mean error "
-        f"{res['map']['mean_error_m']:.3f} m.",
+        f"Route: KITTI-00 poses {r['start']}..{r['stop']} ({r['length_m']:.0f} m, "
+        f"{r['n_scans']} scans); {loc['runs']} runs x {loc['n_particles']} particles per "
+        f"session; map: {mp['n_landmarks']} landmarks for {mp['n_true_poles']} true poles, "
+        f"precision {100 * mp['precision']:.1f} %, recall {100 * mp['recall']:.1f} % "
+        f"(within 0.5 m), mean error {mp['mean_error_m']:.3f} m.",
         "",
-        "| Session | changes | f_map [%] | Δpos [m] | RMSE_pos [m] | Δang [°] | RMSE_ang [°] | max [m] | diverged [%] |",
+        head,
         "|---|---|---|---|---|---|---|---|---|",
     ]
     for s in res["sessions"]:
         m = s["errors"]
         lines.append(
-            f"| {s['session']} | {s['changes']} | {s['f_map'] * 100:.1f} | {m['delta_pos_m']:.3f} | "
-            f"{m['rmse_pos_m']:.3f} | {m['delta_ang_deg']:.3f} | {m['rmse_ang_deg']:.3f} | "
-            f"{m['max_pos_m']:.2f} | {100 * m['diverged_fraction']:.1f} |"
+            f"| {s['session']} | {s['changes']} | {s['f_map'] * 100:.1f} | "
+            f"{m['delta_pos_m']:.3f} | {m['rmse_pos_m']:.3f} | {m['delta_ang_deg']:.3f} | "
+            f"{m['rmse_ang_deg']:.3f} | {m['max_pos_m']:.2f} | "
+            f"{100 * m['diverged_fraction']:.1f} |"
         )
     agg = res["summary"]
     lines += [
         "",
-        f"Mean Δpos over all sessions: {agg['delta_pos_m_mean']:.3f} m; without the barrel session: "
-        f"{agg['delta_pos_m_mean_wo_barrels']:.3f} m (paper, NCLT: {PAPER_121['delta_pos_m_mean']} / "
-        f"{PAPER_121['delta_pos_m_mean_wo_barrels']} m).",
+        f"Mean Δpos over all sessions: {agg['delta_pos_m_mean']:.3f} m; without the barrel "
+        f"session: {agg['delta_pos_m_mean_wo_barrels']:.3f} m (paper, NCLT: "
+        f"{PAPER_121['delta_pos_m_mean']} / {PAPER_121['delta_pos_m_mean_wo_barrels']} m).",
     ]
     if "kitti_protocol" in res:
         k = res["kitti_protocol"]
@@ -342,16 +352,17 @@ def table(res) -> str:
             "",
             "### Table 12.2 analogue: map and localize on the same 46 s drive",
             "",
-            f"{k['n_scans']} scans ({k['length_m']:.0f} m), {k['runs']} runs x {k['n_particles']} particles, "
-            f"{k['resolution_m']} m voxels, {k['map']['n_landmarks']} landmarks.",
+            f"{k['n_scans']} scans ({k['length_m']:.0f} m), {k['runs']} runs x "
+            f"{k['n_particles']} particles, {k['resolution_m']} m voxels, "
+            f"{k['map']['n_landmarks']} landmarks.",
             "",
             "| Approach | " + " | ".join(FIELDS_122) + " |",
             "|---|" + "---|" * len(FIELDS_122),
         ]
         rows = dict(PAPER_122)
         rows["lidarjax (simulated)"] = k["errors"]
-        for name, r in rows.items():
-            cells = [f"{r[f]:.3f}" if f in r else "-" for f in FIELDS_122]
+        for name, row in rows.items():
+            cells = [f"{row[f]:.3f}" if f in row else "-" for f in FIELDS_122]
             lines.append(f"| {name} | " + " | ".join(cells) + " |")
     t = res["timing"]
     lines += [
@@ -359,7 +370,7 @@ def table(res) -> str:
         f"Timing: pole extraction {t['extract_s_per_local_map']:.3f} s per local map "
         f"({t['scans_per_local_map']:.2f} scans, {t['rays_per_s'] / 1e6:.2f} M rays/s); "
         f"particle filter {1e3 * t['filter_ms_per_step_per_run']:.2f} ms per step and run "
-        f"({res['localization']['n_particles']} particles).",
+        f"({loc['n_particles']} particles).",
     ]
     return "\n".join(lines) + "\n"
 
@@ -419,7 +430,11 @@ def main(cfg: DictConfig) -> None:
     # ---- mapping (session 0, ground-truth registration)
     world0 = world_of(0)
     segs_map = segment_scans(gt[:, :2], float(mcfg.segment_m), max_scans=n_pad)
-    keep = int(np.argmax([len(s) for s in segs_map])) if segs_map else None
+    # the figure's local map: the one with the most true poles inside
+    mids = np.array([gt[sg[len(sg) // 2], :2] for sg in segs_map])
+    half = 0.5 * np.asarray(pcfg.extent_m[:2]) - 1.0
+    n_in = [int(np.sum(np.all(np.abs(world0.pole_xy - m) < half, axis=1))) for m in mids]
+    keep = int(np.argmax(n_in)) if segs_map else None
     local, secs, kept = local_maps(
         world0, gt, gt, segs_map, lidar, pcfg, int(cfg.seed) * 1000, n_pad, "map", keep
     )
@@ -430,8 +445,8 @@ def main(cfg: DictConfig) -> None:
     extract_secs = [secs]
     scans_per_map = float(np.mean([len(s) for s in segs_map]))
     if kept is not None:
-        occ, spec, seg = kept
-        plot_local_map(out / "fig12_3_local_map.png", occ, spec, local[keep], world0, pcfg)
+        occ, spec, _, points = kept
+        plot_local_map(out / "fig12_3_local_map.png", occ, spec, points, local[keep], world0, pcfg)
 
     model = PoleMeasurementModel(pole_map.xy, var_m2=float(lcfg.var_m2), eps=float(lcfg.eps))
     sessions, curves, filter_secs = [], {}, []
@@ -516,8 +531,9 @@ def main(cfg: DictConfig) -> None:
         err_k, _ = evaluate(est_k, sub, float(lcfg.diverged_m))
         arc_k = np.sum(np.linalg.norm(np.diff(sub[:, :2], axis=0), axis=1))
         res["kitti_protocol"] = dict(
-            n_scans=len(sub), length_m=float(arc_k), runs=int(k.runs), n_particles=int(k.n_particles),
-            resolution_m=float(k.resolution_m), map=map_quality(map_k, world0), errors=err_k,
+            n_scans=len(sub), length_m=float(arc_k), runs=int(k.runs),
+            n_particles=int(k.n_particles), resolution_m=float(k.resolution_m),
+            map=map_quality(map_k, world0), errors=err_k,
         )  # fmt: skip
     res["wall_s"] = time.perf_counter() - t_start
     (out / "results.json").write_text(json.dumps(res, indent=2))

@@ -290,3 +290,61 @@ def from_points(
     return RayBatch(
         origins=origins, directions=dirs, ranges=rng, kind=classify(rng, lo, hi), r_min=lo, r_max=hi
     )
+
+
+def from_spinning_scan(
+    T_world_sensor: jaxlie.SE3,
+    directions: Float[ArrayLike, "n 3"],
+    ranges_m: Float[ArrayLike, "*scans n"],
+    r_min: float = 0.0,
+    r_max: float = np.inf,
+) -> RayBatch:
+    """Rays of a scanner with fixed beam directions (e.g. a spinning multi-beam lidar).
+
+    Unlike :func:`from_points`, no-return beams are kept: a range of ``+inf`` (no echo)
+    becomes a SUP ray (free space up to ``r_max``, stored with range ``r_max``).
+
+    Args:
+        T_world_sensor: sensor pose(s), ``jaxlie.SE3`` with batch axes ``[*scans]``.
+        directions: ``[n 3]`` beam directions in the sensor frame (normalised here).
+        ranges_m: ``[*scans n]`` measured ranges (m); ``+inf`` = no return; NaN and
+            negative values are rejected.
+        r_min: minimum range (m); shorter readings are SUB rays.
+        r_max: maximum usable range (m), finite when any range is ``+inf``.
+
+    Returns:
+        A :class:`RayBatch` of shape ``[*scans n]``.
+    """
+    if not isinstance(T_world_sensor, jaxlie.SE3):
+        raise ValueError(
+            f"T_world_sensor must be a jaxlie.SE3, got {type(T_world_sensor).__name__}"
+        )
+    d = jnp.asarray(directions, dtype=jnp.result_type(float))
+    if d.ndim != 2 or d.shape[1] != 3:
+        raise ValueError(f"directions must have shape [n, 3], got {d.shape}")
+    norm = jnp.linalg.norm(d, axis=-1)
+    if is_concrete(norm) and not bool(jnp.all(jnp.isfinite(norm) & (norm > 0))):
+        raise ValueError("directions must be finite and non-zero")
+    d = d / norm[:, None]
+    lo, hi = _check_limits(r_min, r_max)
+    if is_concrete(ranges_m):
+        r_np = np.asarray(ranges_m, dtype=float)
+        if np.any(np.isnan(r_np)) or np.any(r_np < 0):
+            raise ValueError("ranges_m must be >= 0 or +inf (no return); found NaN/negative")
+        if np.any(np.isinf(r_np)) and not np.isfinite(float(hi)):
+            raise ValueError("ranges_m has no-return (+inf) beams: give a finite r_max")
+    r = jnp.asarray(ranges_m, dtype=d.dtype)
+    if r.shape[-1:] != (d.shape[0],):
+        raise ValueError(f"ranges_m must have shape [*scans, {d.shape[0]}], got {r.shape}")
+    batch = _scan_batch(T_world_sensor, r.shape[:-1], "ranges_m")
+    r = jnp.where(jnp.isinf(r), hi.astype(d.dtype), r)
+    R = T_world_sensor.rotation().as_matrix().astype(d.dtype)  # [*P 3 3]
+    dirs = jnp.einsum("...ij,nj->...ni", R, d)
+    t = T_world_sensor.translation().astype(d.dtype)
+    n = d.shape[0]
+    origins = jnp.broadcast_to(t[..., None, :], (*batch, n, 3))
+    dirs = jnp.broadcast_to(dirs, (*batch, n, 3))
+    r = jnp.broadcast_to(r, (*batch, n))
+    return RayBatch(
+        origins=origins, directions=dirs, ranges=r, kind=classify(r, lo, hi), r_min=lo, r_max=hi
+    )

@@ -553,6 +553,24 @@ def expected_cell_count(spec: GridSpec, rays: RayBatch) -> Float[Array, "*batch"
     return jnp.sum(jnp.abs(rays.directions), axis=-1) * lengths / spec.resolution + spec.dim
 
 
+def _clip_to_box(spec: GridSpec, origins, directions, lengths):
+    """Vectorised slab test: parameter interval ``[t_in, t_out]`` of every ray
+    ``o + t d``, ``t`` in ``[0, length]``, inside the grid box (``t_out < t_in``: misses)."""
+    lo = spec.origin.astype(origins.dtype)
+    hi = spec.upper.astype(origins.dtype)
+    moving = directions != 0
+    d_safe = jnp.where(moving, directions, 1.0)
+    ta = (lo - origins) / d_safe
+    tb = (hi - origins) / d_safe
+    inside = (origins >= lo) & (origins <= hi)
+    near = jnp.where(moving, jnp.minimum(ta, tb), jnp.where(inside, -jnp.inf, jnp.inf))
+    far = jnp.where(moving, jnp.maximum(ta, tb), jnp.where(inside, jnp.inf, -jnp.inf))
+    t_in = jnp.maximum(jnp.max(near, axis=-1), 0.0)
+    t_out = jnp.minimum(jnp.min(far, axis=-1), lengths)
+    ok = jnp.isfinite(t_in) & jnp.isfinite(t_out)
+    return jnp.where(ok, t_in, 0.0), jnp.where(ok, t_out, 0.0)
+
+
 def _box_diagonal(spec: GridSpec):
     return spec.resolution * math.sqrt(sum(s * s for s in spec.shape))
 
@@ -574,8 +592,9 @@ def _accumulate(
     dtype = origins.dtype
     n = origins.shape[0]
     # Sort by expected work so each chunk's while-loop runs about as long as its rays need.
-    diag = _box_diagonal(spec)
-    work = jnp.sum(jnp.abs(directions), axis=-1) * jnp.minimum(lengths, diag)
+    # expected cells walked: L1 length of the part of the ray inside the grid box
+    t_in, t_out = _clip_to_box(spec, origins, directions, lengths)
+    work = jnp.sum(jnp.abs(directions), axis=-1) * jnp.maximum(t_out - t_in, 0.0)
     work = jnp.where(use, work, -1.0)
     order = jnp.argsort(work)
     n_chunks = max(1, -(-n // chunk_size))

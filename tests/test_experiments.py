@@ -268,3 +268,35 @@ def test_planes_small(tmp_path):
     )
     for f in ("fig11_1_test.png", "fig11_1_crop.png", "results.md"):
         assert (tmp_path / f).stat().st_size > 0
+
+
+@pytest.mark.slow
+def test_poles_small(tmp_path):
+    """Chapter 12 on 100 poses of KITTI-00 with a coarse lidar: map, two sessions (the
+    second with the barrel row shifted) and the short-drive protocol."""
+    res = run_experiment(
+        "poles",
+        tmp_path,
+        "route.stop=100",
+        "lidar.n_azimuths=540",
+        "extractor.extent_m=[20.0,20.0,4.0]",
+        "sessions.n=2",
+        "sessions.barrel_session=1",
+        "localization.runs=2",
+        "localization.n_particles=500",
+        "kitti_protocol.n_scans=60",
+        "kitti_protocol.runs=2",
+        "kitti_protocol.n_particles=300",
+        "kitti_protocol.resolution_m=0.2",
+    )
+    assert res["route"]["n_scans"] == 100 and 60 < res["route"]["length_m"] < 100
+    assert [s["session"] for s in res["sessions"]] == [0, 1]
+    assert res["map"]["n_landmarks"] > 3 and res["map"]["precision"] > 0.5
+    s0 = res["sessions"][0]["errors"]
+    # the map session localizes well below the 2.5 m initial spread
+    assert s0["delta_pos_m"] < 0.5 and s0["n_eval_points"] >= 60
+    k = res["kitti_protocol"]
+    assert k["n_scans"] == 60 and k["errors"]["delta_pos_m"] < 1.0
+    assert res["timing"]["filter_ms_per_step_per_run"] > 0
+    for f in ("results.md", "fig12_1_map.png", "fig12_3_local_map.png", "errors.png"):
+        assert (tmp_path / f).stat().st_size > 0

@@ -246,3 +246,50 @@ def test_poles_container_and_bad_input():
         local_map_spec([np.nan, 0.0])
     with pytest.raises(ValueError, match="config"):
         extract_poles_from_occupancy(jnp.zeros((10, 10, 5)), spec, config={"q_min": 0.5})
+
+
+def test_fast_occupancy_equals_occupancy():
+    from lidarjax.features import fast_occupancy
+    from lidarjax.maps import beta_posterior, occupancy
+    from lidarjax.raytrace import GridStats
+
+    rng = np.random.default_rng(7)
+    spec = GridSpec(jnp.zeros(3), 0.2, (40, 30, 20))
+    hits = rng.poisson(0.3, spec.shape)
+    misses = rng.poisson(3.0, spec.shape)
+    hits[:2] = rng.integers(30, 200, hits[:2].shape)  # beyond the table (H >= 32)
+    misses[-3:] = rng.integers(250, 5000, misses[-3:].shape)  # beyond the table (M >= 256)
+    stats = GridStats(spec, jnp.asarray(hits), jnp.asarray(misses), jnp.zeros(spec.shape))
+    post = beta_posterior(stats)
+    ref = np.asarray(occupancy(post, 0.2))
+    np.testing.assert_allclose(np.asarray(fast_occupancy(post, 0.2)), ref, rtol=0, atol=1e-12)
+    # more voxels outside the table than the sparse path holds: the dense fallback
+    big = GridStats(spec, jnp.asarray(hits), jnp.asarray(misses + 300), jnp.zeros(spec.shape))
+    post = beta_posterior(big)
+    np.testing.assert_allclose(
+        np.asarray(fast_occupancy(post, 0.2)), np.asarray(occupancy(post, 0.2)), atol=1e-12
+    )
+
+
+def test_matched_prior_equals_moment_prior_and_survives_sparse_maps():
+    from lidarjax.features import matched_beta_prior
+    from lidarjax.maps import beta_moment_prior
+    from lidarjax.raytrace import GridStats
+
+    rng = np.random.default_rng(8)
+    spec = GridSpec(jnp.zeros(3), 0.2, (10, 10, 5))
+    hits = rng.poisson(0.5, spec.shape)
+    misses = rng.poisson(4.0, spec.shape)
+    stats = GridStats(spec, jnp.asarray(hits), jnp.asarray(misses), jnp.zeros(spec.shape))
+    np.testing.assert_allclose(matched_beta_prior(stats), beta_moment_prior(stats), rtol=1e-10)
+    # every voxel seen once: ML values are 0 or 1, V = E (1 - E), no Beta has these moments
+    once = rng.uniform(size=spec.shape) < 0.3
+    sparse = GridStats(
+        spec, jnp.asarray(once.astype(int)), jnp.asarray((~once).astype(int)), jnp.zeros(spec.shape)
+    )
+    with pytest.raises(Exception, match="V|var|Beta|moment"):
+        beta_moment_prior(sparse)
+    a, b = (float(x) for x in matched_beta_prior(sparse))
+    e = once.mean()
+    np.testing.assert_allclose(a / (a + b), e, rtol=1e-9)  # the mean is kept
+    np.testing.assert_allclose(a + b, 1 / 0.99 - 1, rtol=1e-9)  # the clamped variance

@@ -112,3 +112,26 @@ def test_raybatch_validates_shapes():
     rays = from_scan(jaxlie.SE2.identity(), jnp.zeros(3), jnp.array([1.0, 9.0, 0.0]), 0.5, 5.0)
     assert rays.counts() == {"HIT": 1, "SUB": 1, "SUP": 1}
     np.testing.assert_allclose(rays.trace_lengths(), [1.0, 5.0, 0.0])
+
+
+def test_from_spinning_scan_keeps_no_returns():
+    import jaxlie
+
+    from lidarjax.rays import from_spinning_scan
+
+    d = np.array([[1.0, 0.0, 0.0], [0.0, 2.0, 0.0], [0.0, 0.0, -1.0]])
+    T = jaxlie.SE3.from_rotation_and_translation(
+        jaxlie.SO3.from_z_radians(np.pi / 2), np.array([1.0, 2.0, 1.5])
+    )
+    rays = from_spinning_scan(T, d, np.array([3.0, np.inf, 0.2]), r_min=0.5, r_max=50.0)
+    np.testing.assert_allclose(rays.directions, [[0, 1, 0], [-1, 0, 0], [0, 0, -1]], atol=1e-12)
+    np.testing.assert_allclose(rays.origins, np.tile([1.0, 2.0, 1.5], (3, 1)))
+    np.testing.assert_allclose(rays.ranges, [3.0, 50.0, 0.2])
+    np.testing.assert_array_equal(rays.kind, [HIT, SUP, SUB])
+    np.testing.assert_allclose(rays.endpoints()[0], [1.0, 5.0, 1.5], atol=1e-12)
+    with pytest.raises(ValueError, match="ranges_m"):
+        from_spinning_scan(T, d, np.array([1.0, np.nan, 1.0]), r_max=50.0)
+    with pytest.raises(ValueError, match="r_max"):
+        from_spinning_scan(T, d, np.array([1.0, np.inf, 1.0]))
+    with pytest.raises(ValueError, match="directions"):
+        from_spinning_scan(T, d[:, :2], np.ones(3), r_max=50.0)

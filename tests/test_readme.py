@@ -59,3 +59,9 @@ def test_readme_examples_run():
     np.testing.assert_allclose(float(fit.error), float(seg.errors[0]), rtol=1e-6)
     assert 0.0005 < ns["sigma"] < 0.005
     assert ns["room"].points.shape == (100, 100, 3)
+    # poles
+    poles, pole_map, ll = ns["poles"], ns["pole_map"], np.asarray(ns["ll_poles"])
+    assert len(poles) >= 3 and len(pole_map) == len(poles)
+    d = np.linalg.norm(poles.xy[:, None] - ns["world"].pole_xy[None], axis=-1).min(1)
+    assert np.median(d) < 0.2, d
+    assert ll.shape == (3,) and ll[0] > ll[1] and ll[0] > ll[2]

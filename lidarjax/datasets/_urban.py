@@ -58,6 +58,7 @@ __all__ = [
     "scan_seed",
     "simulate_scan",
     "simulate_scans",
+    "simulate_urban_scan",
     "simulate_urban_scans",
     "urban_session",
     "wheel_odometry",
@@ -1368,3 +1369,5 @@ def wheel_odometry(
     out[1:, 1] = gt[0, 1] + np.cumsum(sy * lx + cy * ly)
     out[:, 2] = _wrap(yaw)
     return out
+
+simulate_urban_scan = simulate_scan  # the name exported by lidarjax.datasets

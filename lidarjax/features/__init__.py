@@ -20,8 +20,9 @@ from ._plane_baselines import peac_planes as peac_planes
 from ._poles import PoleConfig as PoleConfig
 from ._poles import Poles as Poles
 from ._poles import extract_poles as extract_poles
-from ._poles import fast_occupancy as fast_occupancy
 from ._poles import extract_poles_from_occupancy as extract_poles_from_occupancy
+from ._poles import fast_occupancy as fast_occupancy
+from ._poles import matched_beta_prior as matched_beta_prior
 from ._poles import local_map_spec as local_map_spec
 from ._poles import mean_shift as mean_shift
 from ._poles import pole_score_image as pole_score_image
@@ -84,4 +85,5 @@ __all__ = [
     "extract_poles_from_occupancy",
     "local_map_spec",
     "fast_occupancy",
+    "matched_beta_prior",
 ]

@@ -43,13 +43,12 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, ArrayLike, Bool, Float, Int
-
 from jax.scipy.special import betainc
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from ..maps._posterior import BetaPosteriorMap, beta_posterior
 from ..rays import RayBatch
-from ..raytrace import GridSpec, accumulate
+from ..raytrace import GridSpec, GridStats, accumulate
 
 __all__ = [
     "PoleConfig",
@@ -61,6 +60,7 @@ __all__ = [
     "extract_poles_from_occupancy",
     "local_map_spec",
     "fast_occupancy",
+    "matched_beta_prior",
 ]
 
 
@@ -97,7 +97,7 @@ class PoleConfig:
     max_poles: int = 64
     mean_shift_steps: int = 50
     mean_shift_tol_m: float = 1e-3
-    chunk_size: int = 2048
+    chunk_size: int = 8192
 
     def __post_init__(self):
         if not (self.resolution_m > 0 and math.isfinite(self.resolution_m)):
@@ -459,10 +459,34 @@ def fast_occupancy(beta_map: BetaPosteriorMap, mu_o: float) -> Float[Array, "*sh
     return jax.lax.cond(n_out <= cap, sparse, dense).reshape(h.shape)
 
 
+def matched_beta_prior(stats: GridStats) -> tuple[Float[Array, ""], Float[Array, ""]]:
+    """Moment-matched Beta prior of section 12.4.1, safe for sparse local maps.
+
+    Same formulas as :func:`lidarjax.maps.beta_moment_prior` (mean ``E`` and variance
+    ``V`` of the ML reflection map over observed voxels), but where no Beta distribution has
+    these moments - ``V >= E (1 - E)``, which happens when almost every voxel was seen
+    once, so its ML value is 0 or 1 - ``V`` is clamped to ``0.99 E (1 - E)`` (a prior of
+    total weight ``alpha + beta = 1/99``, i.e. nearly flat), and ``E`` to ``[1e-6, 1 - 1e-6]``.
+    Never raises, so a local map with few rays still yields an occupancy grid.
+    """
+    h = stats.hits.astype(jnp.result_type(float))
+    n = h + stats.misses
+    obs = n > 0
+    cnt = jnp.maximum(jnp.sum(obs), 1)
+    mu = jnp.where(obs, h / jnp.where(obs, n, 1.0), 0.0)
+    e = jnp.clip(jnp.sum(mu) / cnt, 1e-6, 1.0 - 1e-6)
+    v = jnp.sum(jnp.where(obs, (mu - e) ** 2, 0.0)) / cnt
+    bound = e * (1.0 - e)
+    v = jnp.clip(v, 1e-12 * bound, 0.99 * bound)
+    k = bound / v - 1.0
+    return e * k, (1.0 - e) * k
+
+
 @eqx.filter_jit
 def _extract_rays(rays: RayBatch, spec: GridSpec, cfg: PoleConfig) -> tuple[_RawPoles, Array]:
     stats = accumulate(spec, rays, chunk_size=cfg.chunk_size)
-    occ = fast_occupancy(beta_posterior(stats), cfg.mu_o)
+    alpha, beta = matched_beta_prior(stats)
+    occ = fast_occupancy(beta_posterior(stats, alpha=alpha, beta=beta), cfg.mu_o)
     q_all = pole_score_maps(occ, tuple(int(a) for a in cfg.widths), cfg.free_cells)
     return _poles_from_scores(q_all, cfg), occ
 

@@ -26,8 +26,8 @@ from ._landmarks import (
     merge_poles,
     overlap_clusters,
     pad_poles,
-    segment_scans,
     pole_log_likelihood_reference,
+    segment_scans,
     sliding_window_filter,
 )
 from ._poses import circular_mean, from_vector, relative_motion, take, to_vector, weighted_mean

@@ -1370,4 +1370,5 @@ def wheel_odometry(
     out[:, 2] = _wrap(yaw)
     return out
 
+
 simulate_urban_scan = simulate_scan  # the name exported by lidarjax.datasets

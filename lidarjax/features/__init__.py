@@ -22,8 +22,8 @@ from ._poles import Poles as Poles
 from ._poles import extract_poles as extract_poles
 from ._poles import extract_poles_from_occupancy as extract_poles_from_occupancy
 from ._poles import fast_occupancy as fast_occupancy
-from ._poles import matched_beta_prior as matched_beta_prior
 from ._poles import local_map_spec as local_map_spec
+from ._poles import matched_beta_prior as matched_beta_prior
 from ._poles import mean_shift as mean_shift
 from ._poles import pole_score_image as pole_score_image
 from ._poles import pole_score_maps as pole_score_maps

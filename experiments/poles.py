@@ -70,7 +70,7 @@ from lidarjax.localization import (  # noqa: E402
     to_vector,
 )
 from lidarjax.metrics import trajectory_errors  # noqa: E402
-from lidarjax.rays import HIT, SUB, RayBatch, from_spinning_scan  # noqa: E402
+from lidarjax.rays import SUB, RayBatch, from_spinning_scan  # noqa: E402
 
 # Table 12.1 (NCLT, 27 sessions) and Table 12.2 (KITTI) of the dissertation.
 PAPER_121 = {"delta_pos_m_mean": 0.284, "delta_pos_m_mean_wo_barrels": 0.200}
@@ -139,8 +139,7 @@ def local_maps(world, gt, reg, segments, lidar, pcfg, seed, n_pad, desc, keep=No
         t0 = time.perf_counter()
         if k == keep:
             poles, occ = extract_poles(rays, spec, pcfg, return_occupancy=True)
-            hit = np.asarray(rays.kind) == HIT
-            kept = (np.asarray(occ), spec, seg, np.asarray(rays.endpoints())[hit])
+            kept = (np.asarray(occ), spec, seg)
         else:
             poles = extract_poles(rays, spec, pcfg)
         secs.append(time.perf_counter() - t0)
@@ -252,32 +251,19 @@ def plot_map(path, pole_map, world, gt, est, title):
     plt.close(fig)
 
 
-def plot_local_map(path, occ, spec, points, poles, world, pcfg):
-    """Figure 12.3 analogue: the local map's reflections coloured by height with the
-    extracted poles, and the 2-D score map S."""
+def plot_local_map(path, occ, spec, poles, world, pcfg):
     from lidarjax.features import pole_score_image, pole_score_maps
 
-    q = np.asarray(pole_score_maps(jnp.asarray(occ), tuple(pcfg.widths), pcfg.free_cells))
-    s, _, _ = pole_score_image(jnp.asarray(q.max(0)), pcfg.q_min, pcfg.min_cells)
+    q = np.asarray(pole_score_maps(jnp.asarray(occ), tuple(pcfg.widths), pcfg.free_cells)).max(0)
+    s, _, _ = pole_score_image(jnp.asarray(q), pcfg.q_min, pcfg.min_cells)
     o = np.asarray(spec.origin)
     res = float(spec.resolution)
     ext = [o[0], o[0] + occ.shape[0] * res, o[1], o[1] + occ.shape[1] * res]
-    inbox = (
-        (points[:, 0] > ext[0]) & (points[:, 0] < ext[1])
-        & (points[:, 1] > ext[2]) & (points[:, 1] < ext[3])
-        & (points[:, 2] > 0.05) & (points[:, 2] < o[2] + occ.shape[2] * res)
-    )  # fmt: skip
-    pts = points[inbox]
     fig, axes = plt.subplots(1, 2, figsize=(13, 6.2))
-    sc = axes[0].scatter(pts[:, 0], pts[:, 1], c=pts[:, 2], s=0.3, cmap="viridis", vmin=0, vmax=5)
-    fig.colorbar(sc, ax=axes[0], label="height [m]", shrink=0.8)
-    axes[0].set_title(f"local map: {len(pts)} reflections above ground, extracted poles")
-    axes[0].set_xlim(ext[:2])
-    axes[0].set_ylim(ext[2:])
-    axes[0].set_aspect("equal")
-    im = axes[1].imshow(np.asarray(s).T, origin="lower", extent=ext, cmap="magma", vmin=0, vmax=1)
-    fig.colorbar(im, ax=axes[1], label="pole score S", shrink=0.8)
-    axes[1].set_title("2-D pole score S; squares: extracted, circles: true poles")
+    axes[0].imshow(occ.max(2).T, origin="lower", extent=ext, cmap="gray_r", vmin=0, vmax=1)
+    axes[0].set_title("occupancy (max over height)")
+    axes[1].imshow(np.asarray(s).T, origin="lower", extent=ext, cmap="viridis", vmin=0, vmax=1)
+    axes[1].set_title("2-D pole score S, extracted poles (squares), true poles (o)")
     inside = (
         (world.pole_xy[:, 0] > ext[0]) & (world.pole_xy[:, 0] < ext[1])
         & (world.pole_xy[:, 1] > ext[2]) & (world.pole_xy[:, 1] < ext[3])
@@ -288,7 +274,7 @@ def plot_local_map(path, occ, spec, points, poles, world, pcfg):
                 Rectangle((x - w / 2, y - w / 2), w, w, fill=False, color="tab:orange", lw=1.5)
             )
         for (x, y), r in zip(world.pole_xy[inside], world.pole_radius_m[inside], strict=True):
-            ax.add_patch(plt.Circle((x, y), max(r, 0.15), fill=False, color="tab:cyan", lw=1))
+            ax.add_patch(plt.Circle((x, y), max(r, 0.15), fill=False, color="tab:red", lw=1))
         ax.set_xlabel("x [m]")
         ax.set_ylabel("y [m]")
     fig.tight_layout()
@@ -430,11 +416,8 @@ def main(cfg: DictConfig) -> None:
     # ---- mapping (session 0, ground-truth registration)
     world0 = world_of(0)
     segs_map = segment_scans(gt[:, :2], float(mcfg.segment_m), max_scans=n_pad)
-    # the figure's local map: the one with the most true poles inside
-    mids = np.array([gt[sg[len(sg) // 2], :2] for sg in segs_map])
-    half = 0.5 * np.asarray(pcfg.extent_m[:2]) - 1.0
-    n_in = [int(np.sum(np.all(np.abs(world0.pole_xy - m) < half, axis=1))) for m in mids]
-    keep = int(np.argmax(n_in)) if segs_map else None
+    # the figure's local map: the first one with the most scans
+    keep = int(np.argmax([len(s) for s in segs_map])) if segs_map else None
     local, secs, kept = local_maps(
         world0, gt, gt, segs_map, lidar, pcfg, int(cfg.seed) * 1000, n_pad, "map", keep
     )
@@ -445,8 +428,8 @@ def main(cfg: DictConfig) -> None:
     extract_secs = [secs]
     scans_per_map = float(np.mean([len(s) for s in segs_map]))
     if kept is not None:
-        occ, spec, _, points = kept
-        plot_local_map(out / "fig12_3_local_map.png", occ, spec, points, local[keep], world0, pcfg)
+        occ, spec, _ = kept
+        plot_local_map(out / "fig12_3_local_map.png", occ, spec, local[keep], world0, pcfg)
 
     model = PoleMeasurementModel(pole_map.xy, var_m2=float(lcfg.var_m2), eps=float(lcfg.eps))
     sessions, curves, filter_secs = [], {}, []

@@ -422,8 +422,8 @@ def fast_occupancy(beta_map: BetaPosteriorMap, mu_o: float) -> Float[Array, "*sh
 
     The regularised incomplete beta function dominates the extractor's cost when evaluated
     per voxel, but a local map has only ~10^3 distinct ``(H, M)`` pairs. This evaluates it
-    on a table of ``H < 32, M < 256`` and directly on at most 16 384 voxels outside the
-    table (falling back to every voxel if there are more); results equal
+    on a table of ``H < 32, M < 256`` and directly on at most ``max(16 384, n / 16)``
+    voxels outside the table (falling back to every voxel if there are more); results equal
     :func:`~lidarjax.maps.occupancy` exactly (same function, same arguments).
     """
     h, m = beta_map.hits, beta_map.misses
@@ -445,7 +445,7 @@ def fast_occupancy(beta_map: BetaPosteriorMap, mu_o: float) -> Float[Array, "*sh
     out = table[jnp.minimum(hi, _TABLE_H - 1), jnp.minimum(mi, _TABLE_M - 1)]
     flat_out, flat_in = out.ravel(), in_table.ravel()
     n_out = jnp.sum(~flat_in)
-    cap = min(_OUTLIER_CAP, flat_out.shape[0])
+    cap = min(max(_OUTLIER_CAP, flat_out.shape[0] // 16), flat_out.shape[0])
 
     def sparse():
         (idx,) = jnp.nonzero(~flat_in, size=cap, fill_value=0)

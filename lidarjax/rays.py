@@ -275,15 +275,20 @@ def from_points(
         raise ValueError(f"points_xyz must have shape [*scans, n, 3], got {pts.shape}")
     batch = _scan_batch(T_world_sensor, pts.shape[:-2], "points_xyz")
     lo, hi = _check_limits(r_min, r_max)
-    n = pts.shape[-2]
     rng = jnp.linalg.norm(pts, axis=-1)  # [*S n]
     safe = jnp.where(rng > 0, rng, 1.0)
     unit = jnp.where(
         (rng > 0)[..., None], pts / safe[..., None], jnp.array([1.0, 0.0, 0.0], pts.dtype)
     )
-    R = T_world_sensor.rotation().as_matrix().astype(pts.dtype)  # [*P 3 3]
+    return _sensor_rays(T_world_sensor, unit, rng, lo, hi, batch)
+
+
+def _sensor_rays(T_world_sensor: jaxlie.SE3, unit, rng, lo, hi, batch) -> RayBatch:
+    """Rays from sensor-frame unit directions ``[*S n 3]`` and ranges ``[*S n]``."""
+    n = rng.shape[-1]
+    R = T_world_sensor.rotation().as_matrix().astype(rng.dtype)  # [*P 3 3]
     dirs = jnp.einsum("...ij,...nj->...ni", R, unit)
-    t = T_world_sensor.translation().astype(pts.dtype)
+    t = T_world_sensor.translation().astype(rng.dtype)
     origins = jnp.broadcast_to(t[..., None, :], (*batch, n, 3))
     dirs = jnp.broadcast_to(dirs, (*batch, n, 3))
     rng = jnp.broadcast_to(rng, (*batch, n))
@@ -338,13 +343,4 @@ def from_spinning_scan(
         raise ValueError(f"ranges_m must have shape [*scans, {d.shape[0]}], got {r.shape}")
     batch = _scan_batch(T_world_sensor, r.shape[:-1], "ranges_m")
     r = jnp.where(jnp.isinf(r), hi.astype(d.dtype), r)
-    R = T_world_sensor.rotation().as_matrix().astype(d.dtype)  # [*P 3 3]
-    dirs = jnp.einsum("...ij,nj->...ni", R, d)
-    t = T_world_sensor.translation().astype(d.dtype)
-    n = d.shape[0]
-    origins = jnp.broadcast_to(t[..., None, :], (*batch, n, 3))
-    dirs = jnp.broadcast_to(dirs, (*batch, n, 3))
-    r = jnp.broadcast_to(r, (*batch, n))
-    return RayBatch(
-        origins=origins, directions=dirs, ranges=r, kind=classify(r, lo, hi), r_min=lo, r_max=hi
-    )
+    return _sensor_rays(T_world_sensor, d, r, lo, hi, batch)

@@ -204,6 +204,26 @@ class _Ray(eqx.Module):
     tol: Float[Array, ""]
 
 
+def _slabs(spec: GridSpec, o, d):
+    """Per-axis slab test of rays ``o + t d`` (any leading axes) against the grid box.
+
+    Returns ``(moving, d_safe, inside_axis, t_near, t_far)``: ``d != 0``, ``d`` with zeros
+    replaced by 1, whether ``o`` lies within the box's extent on each axis, and the entry and
+    exit parameters per axis (``-inf`` / ``+inf`` for a resting axis inside the slab,
+    ``+inf`` / ``-inf`` outside it).
+    """
+    lo = spec.origin.astype(o.dtype)
+    hi = spec.upper.astype(o.dtype)
+    moving = d != 0
+    d_safe = jnp.where(moving, d, 1.0)
+    ta = (lo - o) / d_safe
+    tb = (hi - o) / d_safe
+    inside_axis = (o >= lo) & (o <= hi)
+    t_near = jnp.where(moving, jnp.minimum(ta, tb), jnp.where(inside_axis, -jnp.inf, jnp.inf))
+    t_far = jnp.where(moving, jnp.maximum(ta, tb), jnp.where(inside_axis, jnp.inf, -jnp.inf))
+    return moving, d_safe, inside_axis, t_near, t_far
+
+
 def _setup(spec: GridSpec, origin, direction, length) -> tuple[_Ray, _WalkState]:
     """Clip one ray to the grid box (slab test) and find its first cell."""
     dtype = jnp.result_type(origin, direction, length, spec.origin)
@@ -216,14 +236,7 @@ def _setup(spec: GridSpec, origin, direction, length) -> tuple[_Ray, _WalkState]
     length = jnp.where(nz, length, 0.0)
 
     lo = spec.origin.astype(dtype)
-    hi = spec.upper.astype(dtype)
-    moving = d != 0
-    d_safe = jnp.where(moving, d, 1.0)
-    ta = (lo - o) / d_safe
-    tb = (hi - o) / d_safe
-    inside_axis = (o >= lo) & (o <= hi)
-    t_near = jnp.where(moving, jnp.minimum(ta, tb), jnp.where(inside_axis, -jnp.inf, jnp.inf))
-    t_far = jnp.where(moving, jnp.maximum(ta, tb), jnp.where(inside_axis, jnp.inf, -jnp.inf))
+    moving, d_safe, inside_axis, t_near, t_far = _slabs(spec, o, d)
     t_enter = jnp.max(t_near)
     t_exit = jnp.min(t_far)
     t0 = jnp.maximum(t_enter, 0.0)
@@ -556,15 +569,7 @@ def expected_cell_count(spec: GridSpec, rays: RayBatch) -> Float[Array, "*batch"
 def _clip_to_box(spec: GridSpec, origins, directions, lengths):
     """Vectorised slab test: parameter interval ``[t_in, t_out]`` of every ray
     ``o + t d``, ``t`` in ``[0, length]``, inside the grid box (``t_out < t_in``: misses)."""
-    lo = spec.origin.astype(origins.dtype)
-    hi = spec.upper.astype(origins.dtype)
-    moving = directions != 0
-    d_safe = jnp.where(moving, directions, 1.0)
-    ta = (lo - origins) / d_safe
-    tb = (hi - origins) / d_safe
-    inside = (origins >= lo) & (origins <= hi)
-    near = jnp.where(moving, jnp.minimum(ta, tb), jnp.where(inside, -jnp.inf, jnp.inf))
-    far = jnp.where(moving, jnp.maximum(ta, tb), jnp.where(inside, jnp.inf, -jnp.inf))
+    _, _, _, near, far = _slabs(spec, origins, directions)
     t_in = jnp.maximum(jnp.max(near, axis=-1), 0.0)
     t_out = jnp.minimum(jnp.min(far, axis=-1), lengths)
     ok = jnp.isfinite(t_in) & jnp.isfinite(t_out)

@@ -35,7 +35,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from .rays import HIT, SUB, SUP, RayBatch, is_concrete
+from ..rays import HIT, SUB, SUP, RayBatch, is_concrete
+from ._primitives import clip_to_box, slabs
 
 
 class GridSpec(eqx.Module):
@@ -205,23 +206,8 @@ class _Ray(eqx.Module):
 
 
 def _slabs(spec: GridSpec, o, d):
-    """Per-axis slab test of rays ``o + t d`` (any leading axes) against the grid box.
-
-    Returns ``(moving, d_safe, inside_axis, t_near, t_far)``: ``d != 0``, ``d`` with zeros
-    replaced by 1, whether ``o`` lies within the box's extent on each axis, and the entry and
-    exit parameters per axis (``-inf`` / ``+inf`` for a resting axis inside the slab,
-    ``+inf`` / ``-inf`` outside it).
-    """
-    lo = spec.origin.astype(o.dtype)
-    hi = spec.upper.astype(o.dtype)
-    moving = d != 0
-    d_safe = jnp.where(moving, d, 1.0)
-    ta = (lo - o) / d_safe
-    tb = (hi - o) / d_safe
-    inside_axis = (o >= lo) & (o <= hi)
-    t_near = jnp.where(moving, jnp.minimum(ta, tb), jnp.where(inside_axis, -jnp.inf, jnp.inf))
-    t_far = jnp.where(moving, jnp.maximum(ta, tb), jnp.where(inside_axis, jnp.inf, -jnp.inf))
-    return moving, d_safe, inside_axis, t_near, t_far
+    """:func:`~lidarjax.raytrace.slabs` against the grid's box."""
+    return slabs(spec.origin.astype(o.dtype), spec.upper.astype(o.dtype), o, d)
 
 
 def _setup(spec: GridSpec, origin, direction, length) -> tuple[_Ray, _WalkState]:
@@ -567,13 +553,8 @@ def expected_cell_count(spec: GridSpec, rays: RayBatch) -> Float[Array, "*batch"
 
 
 def _clip_to_box(spec: GridSpec, origins, directions, lengths):
-    """Vectorised slab test: parameter interval ``[t_in, t_out]`` of every ray
-    ``o + t d``, ``t`` in ``[0, length]``, inside the grid box (``t_out < t_in``: misses)."""
-    _, _, _, near, far = _slabs(spec, origins, directions)
-    t_in = jnp.maximum(jnp.max(near, axis=-1), 0.0)
-    t_out = jnp.minimum(jnp.min(far, axis=-1), lengths)
-    ok = jnp.isfinite(t_in) & jnp.isfinite(t_out)
-    return jnp.where(ok, t_in, 0.0), jnp.where(ok, t_out, 0.0)
+    """Parameter interval ``[t_in, t_out]`` of every ray inside the grid box."""
+    return clip_to_box(spec.origin, spec.upper, origins, directions, lengths)
 
 
 def _box_diagonal(spec: GridSpec):
@@ -734,109 +715,7 @@ def accumulate(
     return GridStats(spec=spec, hits=hits, misses=misses, lengths=lengths)
 
 
-def _cross2(a: Array, b: Array) -> Array:
-    return a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
-
-
-def ray_segment(
-    origin: Float[Array, " 2"],
-    direction: Float[Array, " 2"],
-    start: Float[Array, " 2"],
-    end: Float[Array, " 2"],
-) -> Float[Array, ""]:
-    """Distance along one 2-D ray to its intersection with one line segment.
-
-    Solves ``origin + t * direction = start + u * (end - start)`` for ``t > 0`` and
-    ``u`` in ``[0, 1]`` (widened by a few ulps so a ray through a vertex hits both
-    segments that share it). Parallel rays (and degenerate segments) miss. NaN-free: the
-    gradient is finite everywhere and exact wherever the ray hits the segment's interior.
-
-    Args:
-        origin: ``[2]`` ray start (m).
-        direction: ``[2]`` unit direction.
-        start: ``[2]`` first segment vertex (m).
-        end: ``[2]`` second segment vertex (m).
-
-    Returns:
-        Scalar distance ``t`` (m), ``inf`` when the ray misses the segment.
-    """
-    e = end - start
-    w = start - origin
-    den = _cross2(direction, e)
-    tiny = jnp.finfo(den.dtype).tiny
-    scale = jnp.sqrt(jnp.sum(e * e)) * jnp.sqrt(jnp.sum(direction * direction))
-    ok = jnp.abs(den) > 64 * jnp.finfo(den.dtype).eps * jnp.maximum(scale, tiny)
-    den_safe = jnp.where(ok, den, 1.0)
-    t = _cross2(w, e) / den_safe
-    u = _cross2(w, direction) / den_safe
-    slack = 64 * jnp.finfo(den.dtype).eps
-    hit = ok & (t > 0) & (u >= -slack) & (u <= 1 + slack)
-    return jnp.where(hit, t, jnp.inf)
-
-
-def first_segment_hit(
-    origin: Float[Array, " 2"],
-    direction: Float[Array, " 2"],
-    starts: Float[Array, "s 2"],
-    ends: Float[Array, "s 2"],
-    valid: Bool[Array, " s"] | None = None,
-) -> tuple[Float[Array, ""], Int[Array, ""]]:
-    """First intersection of one 2-D ray with a set of segments (padded + masked).
-
-    Args:
-        origin: ``[2]`` ray start (m).
-        direction: ``[2]`` unit direction.
-        starts: ``[s 2]`` segment start vertices (m).
-        ends: ``[s 2]`` segment end vertices (m).
-        valid: ``[s]`` mask of real segments (default: all).
-
-    Returns:
-        ``(t, index)``: the distance (m, ``inf`` if no segment is hit) and the index of the
-        first segment hit (the lowest index among equally near ones; ``-1`` if none).
-    """
-    t = jax.vmap(ray_segment, in_axes=(None, None, 0, 0))(origin, direction, starts, ends)
-    if valid is not None:
-        t = jnp.where(valid, t, jnp.inf)
-    i = jnp.argmin(t)
-    tmin = t[i]
-    return tmin, jnp.where(jnp.isfinite(tmin), i, -1).astype(jnp.int32)
-
-
-def ray_plane(
-    origin: Float[Array, " d"],
-    direction: Float[Array, " d"],
-    support: Float[Array, " d"],
-    normal: Float[Array, " d"],
-) -> Float[Array, ""]:
-    """Signed distance along one ray to its intersection with an infinite plane (Eq. 11.1).
-
-    Solves ``n . (origin + t * direction - support) = 0`` for ``t``:
-    ``t = n . (support - origin) / (n . direction)``. Works in 2-D (a line) and 3-D. The
-    result is negative when the plane lies behind the ray start. A ray parallel to the
-    plane (``|n . v|`` below a few ulps of ``|n| |v|``) gives ``inf``; the gradient stays
-    finite there (double-``where``).
-
-    Args:
-        origin: ``[d]`` ray start ``s`` (m).
-        direction: ``[d]`` unit ray direction ``v``.
-        support: ``[d]`` any point ``x`` on the plane (m).
-        normal: ``[d]`` plane normal ``n`` (any length, not zero).
-
-    Returns:
-        Scalar ``t`` (m) or ``inf``.
-    """
-    den = jnp.sum(normal * direction)
-    scale = jnp.sqrt(jnp.sum(normal * normal) * jnp.sum(direction * direction))
-    tiny = jnp.finfo(den.dtype).tiny
-    ok = jnp.abs(den) > 64 * jnp.finfo(den.dtype).eps * jnp.maximum(scale, tiny)
-    t = jnp.sum(normal * (support - origin)) / jnp.where(ok, den, 1.0)
-    return jnp.where(ok, t, jnp.inf)
-
-
 __all__ = [
-    "ray_plane",
-    "ray_segment",
-    "first_segment_hit",
     "GridSpec",
     "GridStats",
     "Traversal",
@@ -848,7 +727,5 @@ __all__ = [
     "RayFold",
     "fold_traversal",
     "fold_rays",
-    "SUB",
-    "SUP",
-    "HIT",
+    "gather",
 ]

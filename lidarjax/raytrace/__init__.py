@@ -1,0 +1,66 @@
+"""The geometry core: every ray kernel of lidarjax, written once (dissertation Sec. 7.4).
+
+- :mod:`._grid`: :class:`GridSpec`, :class:`GridStats`, the exact grid walk
+  (:func:`traverse`, :func:`traverse_rays`), :func:`accumulate` (H, M, R) and the folds
+  (:func:`fold_traversal`, :func:`fold_rays`) the grid sensor models are built on.
+- :mod:`._primitives`: ray-box (slab test), ray-plane, ray-segment, and chunking helpers.
+- :mod:`._native`: C++ kernels of the hot walks through the XLA FFI (CPU), selected with
+  ``backend="auto" | "native" | "jax"``; the JAX path is the differentiable path, the
+  fallback and the test oracle.
+"""
+
+from ..rays import HIT as HIT
+from ..rays import SUB as SUB
+from ..rays import SUP as SUP
+from ._grid import GridSpec as GridSpec
+from ._grid import GridStats as GridStats
+from ._grid import RayFold as RayFold
+from ._grid import Traversal as Traversal
+from ._grid import accumulate as accumulate
+from ._grid import expected_cell_count as expected_cell_count
+from ._grid import fold_rays as fold_rays
+from ._grid import fold_traversal as fold_traversal
+from ._grid import gather as gather
+from ._grid import max_cells_for as max_cells_for
+from ._grid import traverse as traverse
+from ._grid import traverse_rays as traverse_rays
+from ._primitives import box_exit as box_exit
+from ._primitives import clip_to_box as clip_to_box
+from ._primitives import first_segment_hit as first_segment_hit
+from ._primitives import map_chunked as map_chunked
+from ._primitives import n_chunks_for as n_chunks_for
+from ._primitives import pad_to_chunks as pad_to_chunks
+from ._primitives import ray_box as ray_box
+from ._primitives import ray_plane as ray_plane
+from ._primitives import ray_segment as ray_segment
+from ._primitives import slabs as slabs
+from ._primitives import unchunk as unchunk
+
+__all__ = [
+    "GridSpec",
+    "GridStats",
+    "Traversal",
+    "RayFold",
+    "traverse",
+    "traverse_rays",
+    "max_cells_for",
+    "accumulate",
+    "expected_cell_count",
+    "fold_traversal",
+    "fold_rays",
+    "gather",
+    "slabs",
+    "ray_box",
+    "clip_to_box",
+    "box_exit",
+    "ray_plane",
+    "ray_segment",
+    "first_segment_hit",
+    "n_chunks_for",
+    "pad_to_chunks",
+    "unchunk",
+    "map_chunked",
+    "HIT",
+    "SUB",
+    "SUP",
+]

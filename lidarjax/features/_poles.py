@@ -82,7 +82,10 @@ class PoleConfig:
         max_poles: static number of mean-shift seeds (the highest local maxima of S).
         mean_shift_steps: maximum mean-shift iterations.
         mean_shift_tol_m: mean shift stops when no mode moves farther (m).
-        chunk_size: rays traced together (static).
+        chunk_size: rays traced together (static; JAX walk only).
+        backend: ray-tracing backend of :func:`lidarjax.raytrace.accumulate`
+            (``"auto"``, ``"native"`` or ``"jax"``).
+        threads: native tracing threads (None: all cores).
     """
 
     resolution_m: float = 0.2
@@ -98,8 +101,12 @@ class PoleConfig:
     mean_shift_steps: int = 50
     mean_shift_tol_m: float = 1e-3
     chunk_size: int = 8192
+    backend: str = "auto"
+    threads: int | None = None
 
     def __post_init__(self):
+        if self.backend not in ("auto", "native", "jax"):
+            raise ValueError(f"backend must be 'auto', 'native' or 'jax', got {self.backend!r}")
         if not (self.resolution_m > 0 and math.isfinite(self.resolution_m)):
             raise ValueError(f"resolution_m must be > 0, got {self.resolution_m!r}")
         if len(self.extent_m) != 3 or not all(e > 0 for e in self.extent_m):
@@ -484,7 +491,9 @@ def matched_beta_prior(stats: GridStats) -> tuple[Float[Array, ""], Float[Array,
 
 @eqx.filter_jit
 def _extract_rays(rays: RayBatch, spec: GridSpec, cfg: PoleConfig) -> tuple[_RawPoles, Array]:
-    stats = accumulate(spec, rays, chunk_size=cfg.chunk_size)
+    stats = accumulate(
+        spec, rays, chunk_size=cfg.chunk_size, backend=cfg.backend, threads=cfg.threads
+    )
     alpha, beta = matched_beta_prior(stats)
     occ = fast_occupancy(beta_posterior(stats, alpha=alpha, beta=beta), cfg.mu_o)
     q_all = pole_score_maps(occ, tuple(int(a) for a in cfg.widths), cfg.free_cells)

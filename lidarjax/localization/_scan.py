@@ -37,6 +37,9 @@ class ScanModel(eqx.Module):
             ``log(1 - P) + log(z_hit N(dist) + z_rand / r_max)`` for in-range readings and
             ``log P`` otherwise, about 10x cheaper.
         chunk_size: rays walked together (see ``batch_log_likelihood``).
+        backend: ray-walk backend, ``"auto"``, ``"native"`` or ``"jax"`` (see
+            ``batch_log_likelihood``).
+        threads: native worker threads (default: all cores).
     """
 
     map: eqx.Module
@@ -46,6 +49,8 @@ class ScanModel(eqx.Module):
     ray_floor: float | None = eqx.field(static=True, default=None)
     endpoint_normalized: bool = eqx.field(static=True, default=False)
     chunk_size: int = eqx.field(static=True, default=2048)
+    backend: str = eqx.field(static=True, default="auto")
+    threads: int | None = eqx.field(static=True, default=None)
 
     def __init__(
         self,
@@ -57,6 +62,8 @@ class ScanModel(eqx.Module):
         ray_floor: float | None = None,
         endpoint_normalized: bool = False,
         chunk_size: int = 2048,
+        backend: str = "auto",
+        threads: int | None = None,
     ):
         if not isinstance(map, GRID_MODELS):
             names = ", ".join(t.__name__ for t in GRID_MODELS)
@@ -77,6 +84,14 @@ class ScanModel(eqx.Module):
         self.ray_floor = None if ray_floor is None else float(ray_floor)
         self.endpoint_normalized = bool(endpoint_normalized)
         self.chunk_size = int(chunk_size)
+        if backend not in ("auto", "native", "jax"):
+            raise ValueError(f"backend must be 'auto', 'native' or 'jax', got {backend!r}")
+        if threads is not None and (
+            isinstance(threads, bool) or not isinstance(threads, int) or threads <= 0
+        ):
+            raise ValueError(f"threads must be a positive int or None, got {threads!r}")
+        self.backend = backend
+        self.threads = threads
 
     def ray_log_likelihoods(
         self, particles: jaxlie.SE2, ranges: Float[ArrayLike, " b"]
@@ -100,7 +115,13 @@ class ScanModel(eqx.Module):
         if isinstance(self.map, EndpointMap) and not self.endpoint_normalized:
             ll = _likelihood_field(self.map, rays, self.r_max)
         else:
-            ll = batch_log_likelihood(self.map, rays, chunk_size=self.chunk_size)
+            ll = batch_log_likelihood(
+                self.map,
+                rays,
+                chunk_size=self.chunk_size,
+                backend=self.backend,
+                threads=self.threads,
+            )
         if self.ray_floor is not None:
             ll = jnp.maximum(ll, self.ray_floor)
         return ll

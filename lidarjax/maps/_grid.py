@@ -25,6 +25,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 from .._math import mul0
 from ..rays import is_concrete
 from ..raytrace import (
+    CellTerm,
     GridSpec,
     GridStats,
     RayFold,
@@ -120,13 +121,10 @@ class DecayRateMap(AbstractDecayRateField):
         return DecayRateMap(spec=self.spec, rates=params**2, outside_rate=self.outside_rate)
 
 
-def _rate_term(rates, cells, lengths):
-    return gather(rates, cells) * lengths
-
 
 def rate_term(m: DecayRateMap):
     """Per-cell summand ``lambda_i d_i`` of the optical depth (a traversal ``term``)."""
-    return jax.tree_util.Partial(_rate_term, m.rates)
+    return CellTerm.linear(slope=m.rates)
 
 
 def grid_optical_depth(m: DecayRateMap, fold: RayFold, lengths) -> Array:

@@ -35,7 +35,15 @@ from jax.scipy.special import betainc
 from jaxtyping import Array, ArrayLike, Float
 
 from ..rays import HIT, SUB, SUP, RayBatch, is_concrete
-from ..raytrace import GridSpec, GridStats, RayFold, fold_traversal, max_cells_for, traverse
+from ..raytrace import (
+    CellTerm,
+    GridSpec,
+    GridStats,
+    RayFold,
+    fold_traversal,
+    max_cells_for,
+    traverse,
+)
 
 __all__ = [
     "BetaPosteriorMap",
@@ -488,18 +496,14 @@ def log_likelihood(
     return _log_likelihood(posterior_map, rays, max_cells=max_cells)
 
 
-def _ref_term(a, b, cells, lengths):
-    return _log_l_ref(_gather(a, cells), _gather(b, cells), False)
-
-
-def _dec_term(a, b, cells, lengths):
-    return _log_l_dec(_gather(a, cells), _gather(b, cells), lengths, False)
 
 
 def term(posterior_map):
     """Per-cell summand of ``log L`` for a cell the ray passes without reflection."""
-    fn = _ref_term if isinstance(posterior_map, BetaPosteriorMap) else _dec_term
-    return jax.tree_util.Partial(fn, posterior_map.a, posterior_map.b)
+    a, b = posterior_map.a, posterior_map.b
+    if isinstance(posterior_map, BetaPosteriorMap):
+        return CellTerm.linear(offset=_log_l_ref(a, b, False))
+    return CellTerm.gamma(a, b)
 
 
 def finish(posterior_map, f: RayFold, origin, direction, trace_len, kind):

@@ -36,6 +36,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from ..rays import HIT, SUB, SUP, RayBatch, is_concrete
+from . import _native
 from ._primitives import clip_to_box, slabs
 
 
@@ -250,7 +251,10 @@ def _setup(spec: GridSpec, origin, direction, length) -> tuple[_Ray, _WalkState]
     # t = (lo_k - o_k + (c0_k + up_k) * res) / d_k + (c_k - c0_k) * res / d_k (inf if d_k = 0).
     first = (lo - o + (cell + (d > 0)).astype(dtype) * spec.resolution) / d_safe
     t_first = jnp.where(moving, first, jnp.inf)
-    t_scale = jnp.where(moving, spec.resolution / d_safe, 0.0)
+    # A direction component so small that one cell takes more than the largest float
+    # (1e-37 with 100 m cells in float32) must not make 0 * inf = NaN in _step.
+    big = jnp.finfo(dtype).max
+    t_scale = jnp.where(moving, jnp.clip(spec.resolution / d_safe, -big, big), 0.0)
     return _Ray(o, d, t_first, cell, t_scale, t0, t1, tol), _WalkState(cell, t0, active)
 
 
@@ -398,27 +402,31 @@ def _fold_sorted(spec: GridSpec, origins, directions, lengths, term, chunk: int)
 
     setup = jax.vmap(functools.partial(_setup, spec))
     step = jax.vmap(functools.partial(_step, spec))
+    budget = walk_bound(spec)
 
     def one_chunk(xs):
         o, d, length = xs
         ray, state = setup(o.astype(dtype), d.astype(dtype), length.astype(dtype))
         zero = jnp.zeros(o.shape[0], dtype)
-        init = (state, zero, state.cell, zero, zero, jnp.zeros(o.shape[0], bool))
+        init = (state, zero, state.cell, zero, zero, jnp.zeros(o.shape[0], bool), 0)
 
         def cond(carry):
-            return jnp.any(carry[0].active)
+            return jnp.any(carry[0].active) & (carry[-1] < budget)
 
         def body(carry):
-            s, acc, last_cell, last_len, grid_len, any_valid = carry
+            s, acc, last_cell, last_len, grid_len, any_valid, it = carry
             (cell, seg, valid, last), s = step(ray, s)
             vals = term(cell, seg)
             acc = acc + jnp.where(valid & ~last, vals, 0.0)
             is_end = valid & last
             last_cell = jnp.where(is_end[:, None], cell, last_cell)
             last_len = jnp.where(is_end, seg, last_len)
-            return s, acc, last_cell, last_len, grid_len + seg, any_valid | valid
+            return s, acc, last_cell, last_len, grid_len + seg, any_valid | valid, it + 1
 
-        _, acc, last_cell, last_len, grid_len, any_valid = jax.lax.while_loop(cond, body, init)
+        final, acc, last_cell, last_len, grid_len, any_valid, _ = jax.lax.while_loop(
+            cond, body, init
+        )
+        acc = _check_walk_ended(acc, final.active)
         return acc, last_cell, last_len, grid_len, any_valid, ray.t_start, ray.t_end
 
     outs = jax.lax.map(one_chunk, (prep(origins), prep(directions), prep(lengths)))
@@ -434,8 +442,17 @@ def fold_rays(
     term,
     chunk_size: int = 2048,
     streams: int = 2,
+    *,
+    backend: str = "auto",
+    threads: int | None = None,
 ) -> RayFold:
     """:func:`fold_traversal` of many rays without a per-ray cell budget (forward only).
+
+    With a :class:`CellTerm` and ``backend`` ``"native"`` (or ``"auto"`` when the native
+    kernels are built, see :mod:`lidarjax.raytrace._native`) the walk runs in C++ on
+    ``threads`` threads (default: all cores) with the same walk and the same per-cell
+    terms; ``chunk_size`` and ``streams`` then do not matter. Any other ``term`` uses the
+    JAX path.
 
     Rays are sorted by expected cell count and walked in chunks of ``chunk_size``, each
     chunk in a ``lax.while_loop`` that stops when its longest ray is done, so the work is
@@ -456,18 +473,55 @@ def fold_rays(
             an ``equinox.Module`` to keep the arrays it closes over traced.
         chunk_size: rays walked together (static, >= 1).
         streams: independent chunk sequences (static, >= 1).
+        backend: ``"auto"``, ``"native"`` or ``"jax"`` (static).
+        threads: native worker threads (static; default all cores).
 
     Returns:
         A :class:`RayFold` with fields of leading shape ``[n]`` (``complete`` all True).
+
+    Raises:
+        ValueError: bad ``chunk_size``/``streams``/``threads``/``backend``, no rays, or
+            ``backend="native"`` with a ``term`` that is not a :class:`CellTerm`.
+        RuntimeError: ``backend="native"`` but the native kernels are unavailable.
     """
     if not isinstance(chunk_size, int) or chunk_size <= 0:
         raise ValueError(f"chunk_size must be a positive int, got {chunk_size!r}")
     if not isinstance(streams, int) or streams <= 0:
         raise ValueError(f"streams must be a positive int, got {streams!r}")
+    threads = _native.check_threads(threads)
     n, _ = origins.shape
     if n == 0:
         raise ValueError("origins is empty: no rays to fold")
+    if backend == "native" and not isinstance(term, CellTerm):
+        raise ValueError(
+            f"backend='native' needs a CellTerm term, got {type(term).__name__}; "
+            "use backend='jax' for arbitrary terms"
+        )
     dtype = jnp.result_type(origins.dtype, spec.origin.dtype)
+    origins, directions, lengths = check_rays(spec, origins, directions, lengths)
+    if isinstance(term, CellTerm) and _native.resolve(backend) == "native":
+        outs = _native.fold(
+            spec,
+            term.mode,
+            term.tables.astype(dtype),
+            origins.astype(dtype),
+            directions.astype(dtype),
+            lengths.astype(dtype),
+            threads,
+        )
+        acc, last_cell, last_len, grid_len, any_valid, t_start, t_end = outs
+        return RayFold(
+            body=acc,
+            last_cell=last_cell,
+            last_len=last_len,
+            grid_len=grid_len,
+            any_valid=any_valid,
+            t_start=t_start,
+            t_end=t_end,
+            complete=jnp.ones(n, bool),
+        )
+    if backend not in _native.BACKENDS:
+        raise ValueError(f"backend must be one of {_native.BACKENDS}, got {backend!r}")
     unit_sum = jnp.sum(jnp.abs(directions), axis=-1) / jnp.maximum(
         jnp.sqrt(jnp.sum(directions * directions, axis=-1)), jnp.finfo(dtype).tiny
     )
@@ -497,6 +551,68 @@ def fold_rays(
         t_end=t_end,
         complete=jnp.ones(n, bool),
     )
+
+
+class CellTerm(eqx.Module):
+    """A per-cell fold term given by tables over the grid, the form every grid sensor
+    model's term takes; the JAX walk calls it, the native kernel reads its tables.
+
+    ``term(cell c, length l)`` by ``mode`` (``A``, ``B``, ``a``, ``b``, ``log_b`` are
+    ``[*shape]`` tables stacked in ``tables``):
+
+    - ``0``: ``A[c] + B[c] * l``;  ``1``: ``B[c] * l``;  ``2``: ``A[c]``;
+    - ``3``: ``a[c] * (log_b[c] - log(b[c] + l))`` for ``l > 0``, else 0 (the no-reflection
+      factor of the Gamma full posterior, Sec. 8.4.5).
+
+    Attributes:
+        tables: ``[k *shape]`` per-cell tables (``k`` = 2, 1, 1, 3 by mode).
+        mode: static term form.
+    """
+
+    tables: Float[Array, "k *shape ..."]
+    mode: int = eqx.field(static=True)
+
+    def __init__(self, tables: Float[ArrayLike, "k *shape ..."], mode: int):
+        need = {0: 2, 1: 1, 2: 1, 3: 3}
+        if mode not in need:
+            raise ValueError(f"mode must be 0, 1, 2 or 3, got {mode!r}")
+        tables = jnp.asarray(tables)
+        if tables.ndim not in (3, 4) or tables.shape[0] != need[mode]:
+            raise ValueError(
+                f"tables must have shape [{need[mode]} *shape] for mode {mode}, got {tables.shape}"
+            )
+        self.tables = tables
+        self.mode = mode
+
+    @classmethod
+    def linear(cls, offset: Array | None = None, slope: Array | None = None) -> CellTerm:
+        """``offset[c] + slope[c] * l`` (either may be None, meaning 0)."""
+        if offset is None and slope is None:
+            raise ValueError("give offset, slope or both")
+        if offset is None:
+            return cls(jnp.asarray(slope)[None], 1)
+        if slope is None:
+            return cls(jnp.asarray(offset)[None], 2)
+        return cls(jnp.stack([jnp.asarray(offset), jnp.asarray(slope)]), 0)
+
+    @classmethod
+    def gamma(cls, a: Array, b: Array) -> CellTerm:
+        """``a[c] * (log b[c] - log(b[c] + l))`` for ``l > 0`` (``a, b > 0``)."""
+        a, b = jnp.asarray(a), jnp.asarray(b)
+        return cls(jnp.stack([a, b, jnp.log(b)]), 3)
+
+    def __call__(self, cells: Int[Array, "... d"], lengths: Array) -> Array:
+        t = self.tables
+        if self.mode == 0:
+            return gather(t[0], cells) + gather(t[1], cells) * lengths
+        if self.mode == 1:
+            return gather(t[0], cells) * lengths
+        if self.mode == 2:
+            return gather(t[0], cells)
+        pos = lengths > 0
+        d_safe = jnp.where(pos, lengths, 1.0)
+        a, b, log_b = (gather(t[k], cells) for k in range(3))
+        return jnp.where(pos, a * (log_b - jnp.log(b + d_safe)), 0.0)
 
 
 def gather(values: Array, cells: Int[Array, "... d"]) -> Array:
@@ -557,6 +673,46 @@ def _clip_to_box(spec: GridSpec, origins, directions, lengths):
     return clip_to_box(spec.origin, spec.upper, origins, directions, lengths)
 
 
+def walk_bound(spec: GridSpec) -> int:
+    """Most cells any ray can visit in ``spec``: each step of the walk moves at least one
+    axis index by one, monotonically, so at most ``sum(shape)`` steps plus the first cell
+    (``sum(shape) + dim`` is used). Every loop over cells stops at this bound."""
+    return int(sum(spec.shape)) + spec.dim
+
+
+def _check_walk_ended(x, active):
+    """Fail loudly (``eqx.error_if``) if any walk hit :func:`walk_bound` still active,
+    which only non-finite inputs can cause; the result would be wrong otherwise."""
+    return eqx.error_if(
+        x,
+        jnp.any(active),
+        "ray walk exceeded the grid's cell bound (non-finite ray origin, direction or "
+        "length, or grid origin/resolution)",
+    )
+
+
+def check_rays(spec: GridSpec, origins, directions, lengths, name: str = "rays"):
+    """Run-time validation of ray inputs (``eqx.error_if``, eager or under ``jit``):
+    origins and directions finite, lengths not NaN and not negative (``inf`` traces to the
+    grid border), the grid origin finite and its resolution positive and finite. Returns
+    ``(origins, directions, lengths)`` carrying the checks (use the returned values)."""
+    bad_o = ~jnp.all(jnp.isfinite(origins))
+    origins = eqx.error_if(origins, bad_o, f"{name}: ray origins must be finite (NaN or inf pose?)")
+    bad_d = ~jnp.all(jnp.isfinite(directions))
+    directions = eqx.error_if(
+        directions, bad_d, f"{name}: ray directions must be finite (NaN or inf heading/azimuth?)"
+    )
+    bad_l = jnp.any(jnp.isnan(lengths) | (lengths < 0))
+    lengths = eqx.error_if(lengths, bad_l, f"{name}: ray lengths must be >= 0 and not NaN")
+    bad_g = ~(jnp.all(jnp.isfinite(spec.origin)) & jnp.isfinite(spec.resolution)) | ~(
+        spec.resolution > 0
+    )
+    origins = eqx.error_if(
+        origins, bad_g, "spec: grid origin must be finite and resolution positive and finite"
+    )
+    return origins, directions, lengths
+
+
 def _box_diagonal(spec: GridSpec):
     return spec.resolution * math.sqrt(sum(s * s for s in spec.shape))
 
@@ -577,6 +733,8 @@ def _accumulate(
 ):
     dtype = origins.dtype
     n = origins.shape[0]
+    origins, directions, checked = check_rays(spec, origins, directions, jnp.where(use, lengths, 0))
+    lengths = jnp.where(use, checked, lengths)
     # Sort by expected work so each chunk's while-loop runs about as long as its rays need.
     # expected cells walked: L1 length of the part of the ray inside the grid box
     t_in, t_out = _clip_to_box(spec, origins, directions, lengths)
@@ -607,6 +765,7 @@ def _accumulate(
 
     setup = jax.vmap(functools.partial(_setup, spec))
     step = jax.vmap(functools.partial(_step, spec))
+    budget = walk_bound(spec)
 
     def flat_index(cell, valid):
         return jnp.where(valid, jnp.sum(cell * strides, axis=-1), n_cells)
@@ -619,19 +778,20 @@ def _accumulate(
         ends_inside = is_hit & state.active & (ray.t_end >= length - ray.tol)
 
         def cond(carry):
-            return jnp.any(carry[1].active)
+            return jnp.any(carry[1].active) & (carry[-1] < budget)
 
         def body(carry):
-            (rv, hits), s, last_cell, ended = carry
+            (rv, hits), s, last_cell, ended, it = carry
             (cell, seg, valid, last), s = step(ray, s)
             upd = jax.lax.complex(seg, valid.astype(dtype))
             rv = rv.at[flat_index(cell, valid)].add(upd, mode="promise_in_bounds")
             is_end = valid & last
             last_cell = jnp.where(is_end[:, None], cell, last_cell)
-            return (rv, hits), s, last_cell, ended | is_end
+            return (rv, hits), s, last_cell, ended | is_end, it + 1
 
-        init = (acc, state, state.cell, jnp.zeros_like(state.active))
-        (rv, hits), _, last_cell, ended = jax.lax.while_loop(cond, body, init)
+        init = (acc, state, state.cell, jnp.zeros_like(state.active), 0)
+        (rv, hits), final, last_cell, ended, _ = jax.lax.while_loop(cond, body, init)
+        rv = _check_walk_ended(rv, final.active)
         # only rays whose walk reached their end cell record a hit there
         hit_flat = flat_index(last_cell, ends_inside & ended)
         hits = hits.at[hit_flat].add(1, mode="promise_in_bounds")
@@ -644,12 +804,21 @@ def _accumulate(
     return rv.real[:n_cells].reshape(shape), visits - hits, hits
 
 
+@functools.partial(jax.jit, static_argnames=("threads",))
+def _accumulate_native(spec: GridSpec, origins, directions, lengths, ray_hits, use, *, threads):
+    origins, directions, checked = check_rays(spec, origins, directions, jnp.where(use, lengths, 0))
+    lengths = jnp.where(use, checked, lengths)
+    return _native.accumulate(spec, origins, directions, lengths, ray_hits, use, threads)
+
+
 def accumulate(
     spec: GridSpec,
     rays: RayBatch,
     *,
     chunk_size: int = 1024,
     sub_rays: Literal["ignore", "hit"] = "ignore",
+    backend: str = "auto",
+    threads: int | None = None,
 ) -> GridStats:
     """Per-cell hit counts H, miss counts M and travelled lengths R of a ray batch.
 
@@ -668,6 +837,11 @@ def accumulate(
         rays: any batch shape.
         chunk_size: rays walked together (static).
         sub_rays: ``"ignore"`` or ``"hit"``.
+        backend: ``"auto"`` (native C++ walk when built, else JAX with one warning),
+            ``"native"`` or ``"jax"``; see :mod:`lidarjax.raytrace._native`. Both give the
+            same counts; lengths agree to round-off of the summation order.
+        threads: native worker threads, each with private accumulators merged at the end
+            (default: all cores). Ignored by the JAX path.
 
     Returns:
         :class:`GridStats` with arrays of shape ``spec.shape``. Counts are exact integers;
@@ -681,6 +855,9 @@ def accumulate(
         raise ValueError(f"sub_rays must be 'ignore' or 'hit', got {sub_rays!r}")
     if not isinstance(chunk_size, int) or chunk_size <= 0:
         raise ValueError(f"chunk_size must be a positive int, got {chunk_size!r}")
+    threads = _native.check_threads(threads)
+    if backend not in _native.BACKENDS:
+        raise ValueError(f"backend must be one of {_native.BACKENDS}, got {backend!r}")
     flat = rays.flatten()
     if flat.ranges.shape[0] == 0:
         raise ValueError("rays is empty")
@@ -692,6 +869,17 @@ def accumulate(
         is_hit = is_hit | (kind == SUB)
         use = use | (kind == SUB)
     trace = jnp.where(kind == SUP, flat.r_max, flat.ranges).astype(dtype)
+    if _native.resolve(backend) == "native":
+        lengths, misses, hits = _accumulate_native(
+            spec,
+            flat.origins.astype(dtype),
+            flat.directions.astype(dtype),
+            trace,
+            is_hit,
+            use,
+            threads=threads,
+        )
+        return GridStats(spec=spec, hits=hits, misses=misses, lengths=lengths)
     n = flat.ranges.shape[0]
     chunk = min(chunk_size, n)
     # Visit counts are summed as floats inside one call; at most _MAX_RAYS_PER_CALL rays
@@ -725,6 +913,7 @@ __all__ = [
     "accumulate",
     "expected_cell_count",
     "RayFold",
+    "CellTerm",
     "fold_traversal",
     "fold_rays",
     "gather",

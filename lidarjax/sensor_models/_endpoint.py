@@ -11,7 +11,7 @@ from jaxtyping import Array, Float
 
 from ..maps._grid import EndpointMap
 from ..rays import HIT, RayBatch
-from ..raytrace import RayFold, fold_traversal, traverse
+from ..raytrace import CellTerm, RayFold, fold_traversal, traverse
 from ._common import (
     check_complete,
     check_model_inputs,
@@ -20,10 +20,6 @@ from ._common import (
     mul0,
     safe_log,
 )
-
-
-def _term(field, z_hit, rand, cells, lengths):
-    return (z_hit * gather(field, cells) + rand) * lengths
 
 
 def prepare(m: EndpointMap, rays: RayBatch):
@@ -43,7 +39,7 @@ def prepare(m: EndpointMap, rays: RayBatch):
 
 def term(m: EndpointMap, field, rand):
     """Per-cell summand ``f_i d_i`` of the normaliser ``Z``."""
-    return jax.tree_util.Partial(_term, field, m.z_hit, rand)
+    return CellTerm.linear(slope=m.z_hit * field + rand)
 
 
 def finish(m: EndpointMap, field, rand, f: RayFold, flat: RayBatch, unit, span):

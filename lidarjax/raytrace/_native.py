@@ -1,0 +1,212 @@
+"""Loader and JAX bindings of the native (C++, XLA FFI) ray kernels.
+
+The kernels in ``csrc/walk.cc`` reproduce the JAX walk of :mod:`._grid` exactly and are
+registered as XLA FFI targets for the CPU platform, so they work inside ``jit``,
+``lax.scan`` and ``vmap`` (``vmap`` runs them once per batch element). They are built by
+``make`` (``python -m lidarjax.raytrace._build``) against the installed jaxlib's FFI headers.
+
+Backend selection, for every driver that has a native kernel (``backend=`` argument):
+
+- ``"jax"``: the pure-JAX path (differentiable where the driver is; runs on any device).
+- ``"native"``: the C++ kernel; raises if it is unavailable (not built, stale, or the
+  default JAX device is not a CPU).
+- ``"auto"`` (default): native when available, else the JAX path with one warning saying
+  why. The environment variable ``LIDARJAX_BACKEND`` (``auto``/``native``/``jax``) sets
+  the default for ``"auto"`` calls.
+
+A CUDA kernel of the same target names can be registered for ``platform="CUDA"`` later;
+until then ``"auto"`` uses the JAX path on GPUs.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import os
+import warnings
+from typing import Literal
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import _build
+
+Backend = Literal["auto", "native", "jax"]
+BACKENDS = ("auto", "native", "jax")
+TERM_MODES = {0: 2, 1: 1, 2: 1, 3: 3}  # mode -> number of tables
+
+_state: dict = {"loaded": None, "reason": None, "warned": False}
+
+
+def _dt(dtype) -> str:
+    dtype = np.dtype(dtype)
+    if dtype == np.float32:
+        return "f32"
+    if dtype == np.float64:
+        return "f64"
+    raise ValueError(f"native ray kernels support float32 and float64, got {dtype}")
+
+
+def _load() -> bool:
+    if _state["loaded"] is not None:
+        return _state["loaded"]
+    ok, reason = False, None
+    if not _build.LIBRARY.exists():
+        reason = (
+            "the native library is not built (run `make` or `python -m lidarjax.raytrace._build`)"
+        )
+    elif not _build.up_to_date():
+        reason = (
+            "the native library is stale (C++ sources or jaxlib changed since it was built; "
+            "run `make` or `python -m lidarjax.raytrace._build`)"
+        )
+    else:
+        try:
+            lib = ctypes.CDLL(str(_build.LIBRARY))
+            for dt in ("F32", "F64"):
+                for d in (2, 3):
+                    jax.ffi.register_ffi_target(
+                        f"lidarjax_accumulate_{dt.lower()}_{d}d",
+                        jax.ffi.pycapsule(getattr(lib, f"LidarjaxAccumulate{dt}D{d}")),
+                        platform="cpu",
+                    )
+                    for m in TERM_MODES:
+                        jax.ffi.register_ffi_target(
+                            f"lidarjax_fold_{dt.lower()}_{d}d_m{m}",
+                            jax.ffi.pycapsule(getattr(lib, f"LidarjaxFold{dt}D{d}M{m}")),
+                            platform="cpu",
+                        )
+            ok = True
+        except (OSError, AttributeError) as e:
+            reason = f"the native library could not be loaded: {e}"
+    _state["loaded"], _state["reason"] = ok, reason
+    return ok
+
+
+def available() -> bool:
+    """Whether the native kernels are built, current and usable on the default device."""
+    return _load() and jax.default_backend() == "cpu"
+
+
+def unavailable_reason() -> str | None:
+    """Why :func:`available` is False (None if it is True)."""
+    if not _load():
+        return _state["reason"]
+    if jax.default_backend() != "cpu":
+        return f"the default JAX backend is {jax.default_backend()!r}; the kernels are CPU-only"
+    return None
+
+
+def resolve(backend: str) -> str:
+    """``"native"`` or ``"jax"`` for a requested backend (see the module docstring).
+
+    Raises:
+        ValueError: unknown backend name.
+        RuntimeError: ``backend="native"`` but the kernels are unavailable.
+    """
+    if backend not in BACKENDS:
+        raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+    if backend == "auto":
+        env = os.environ.get("LIDARJAX_BACKEND", "auto")
+        if env not in BACKENDS:
+            raise ValueError(f"LIDARJAX_BACKEND must be one of {BACKENDS}, got {env!r}")
+        if env == "jax":
+            return "jax"
+        if env == "native":
+            backend = "native"
+    if backend == "jax":
+        return "jax"
+    if available():
+        return "native"
+    if backend == "native":
+        raise RuntimeError(f"backend='native' requested but {unavailable_reason()}")
+    if not _state["warned"]:
+        _state["warned"] = True
+        warnings.warn(
+            f"lidarjax: using the pure-JAX ray walk because {unavailable_reason()}",
+            RuntimeWarning,
+            stacklevel=3,
+        )
+    return "jax"
+
+
+def default_threads() -> int:
+    """All cores this process may run on."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover - not Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def check_threads(threads: int | None) -> int:
+    """``threads`` validated (``None`` means :func:`default_threads`)."""
+    if threads is None:
+        return default_threads()
+    if isinstance(threads, bool) or not isinstance(threads, int) or threads <= 0:
+        raise ValueError(f"threads must be a positive int or None, got {threads!r}")
+    return threads
+
+
+def accumulate(spec, origins, directions, lengths, is_hit, use, threads: int):
+    """Native :func:`~lidarjax.raytrace.accumulate` core: ``(R, M, H)`` of ``spec.shape``.
+
+    Args:
+        spec: the grid (``GridSpec``).
+        origins, directions: ``[n d]`` rays (float32 or float64, same dtype).
+        lengths: ``[n]`` trace lengths (m).
+        is_hit: ``[n]`` bool, the ray reflects at its length.
+        use: ``[n]`` bool, the ray contributes at all.
+        threads: worker threads.
+    """
+    dtype = origins.dtype
+    name = f"lidarjax_accumulate_{_dt(dtype)}_{spec.dim}d"
+    out = (
+        jax.ShapeDtypeStruct(spec.shape, dtype),
+        jax.ShapeDtypeStruct(spec.shape, jnp.int32),
+        jax.ShapeDtypeStruct(spec.shape, jnp.int32),
+    )
+    call = jax.ffi.ffi_call(name, out, vmap_method="sequential")
+    r, h, m = call(
+        spec.origin.astype(dtype),
+        spec.resolution.astype(dtype),
+        origins,
+        directions.astype(dtype),
+        lengths.astype(dtype),
+        is_hit.astype(bool),
+        use.astype(bool),
+        threads=np.int64(threads),
+    )
+    return r, m, h
+
+
+def fold(spec, mode: int, tables, origins, directions, lengths, threads: int):
+    """Native :func:`~lidarjax.raytrace.fold_rays` core for a :class:`CellTerm`.
+
+    Returns ``(body, last_cell, last_len, grid_len, any_valid, t_start, t_end)`` with
+    leading axis ``[n]``.
+    """
+    dtype = origins.dtype
+    if mode not in TERM_MODES:
+        raise ValueError(f"unknown term mode {mode!r}")
+    n = origins.shape[0]
+    name = f"lidarjax_fold_{_dt(dtype)}_{spec.dim}d_m{mode}"
+    f = jax.ShapeDtypeStruct((n,), dtype)
+    out = (
+        f,
+        jax.ShapeDtypeStruct((n, spec.dim), jnp.int32),
+        f,
+        f,
+        jax.ShapeDtypeStruct((n,), jnp.bool_),
+        f,
+        f,
+    )
+    call = jax.ffi.ffi_call(name, out, vmap_method="sequential")
+    return call(
+        spec.origin.astype(dtype),
+        spec.resolution.astype(dtype),
+        tables.astype(dtype),
+        origins,
+        directions.astype(dtype),
+        lengths.astype(dtype),
+        threads=np.int64(threads),
+    )

@@ -1,0 +1,444 @@
+// Native CPU kernels of lidarjax's exact grid walk (dissertation Sec. 7.4), called from JAX
+// through the XLA FFI (jax.ffi.ffi_call). The walk reproduces lidarjax/raytrace/_grid.py's
+// `_setup` and `_step` operation for operation (same boundary rule, coincident crossings
+// taken together, same tolerances), so hit/miss counts are identical to the JAX path and
+// lengths agree to round-off. Compiled with -ffp-contract=off so no multiply-add is fused.
+// Bit-identity with the JAX path is not attainable in general: XLA's CPU compiler rewrites
+// some divisions by a broadcast scalar (x / |d|, x / resolution) into multiplications by
+// the reciprocal, differently in different fusions, so the JAX path itself differs by an
+// ulp between contexts; the kernels here divide exactly (correctly rounded).
+//
+// Kernels (T = float or double, D = 2 or 3):
+//   Accumulate<T, D>: per-cell R (lengths), H (hits), M (misses) of a ray batch; rays are
+//     split over `threads` worker threads with private accumulators merged at the end.
+//   Fold<T, D, MODE>: per-ray fold of a per-cell term (body sum over all cells but the last,
+//     last cell, its length, length inside the grid, any cell visited, t_start, t_end), the
+//     input of every grid sensor model's finish. MODE selects the term from per-cell tables:
+//       0: A[c] + B[c] * len   1: B[c] * len   2: A[c]
+//       3: len > 0 ? a[c] * (log b[c] - log(b[c] + len)) : 0   (Gamma posterior, Sec. 8.4.5)
+// Every loop over cells is bounded by sum(shape) + D steps; a walk still running there
+// (only possible with non-finite input, which the Python side rejects first) is an error.
+
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <limits>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "xla/ffi/api/ffi.h"
+
+namespace ffi = xla::ffi;
+
+namespace {
+
+template <typename T, int D>
+struct Grid {
+  T lo[D];
+  T res;
+  int32_t n[D];
+  int64_t stride[D];
+  int64_t ncells;
+  int64_t bound;
+};
+
+template <typename T, int D>
+struct Walk {
+  T d[D];
+  T t_first[D];
+  T t_scale[D];
+  int32_t c0[D];
+  int32_t cell[D];
+  bool moving[D];
+  bool up[D];
+  T t_start, t_end, tol, t;
+  bool active;
+};
+
+template <typename T, int D>
+inline void setup(const Grid<T, D>& g, const T* o, const T* din, T length, Walk<T, D>& w) {
+  const T inf = std::numeric_limits<T>::infinity();
+  T ss = T(0);
+  for (int k = 0; k < D; ++k) ss = ss + din[k] * din[k];
+  const T norm = std::sqrt(ss);
+  const bool nz = norm > T(0);
+  const T nrm = nz ? norm : T(1);
+  for (int k = 0; k < D; ++k) w.d[k] = din[k] / nrm;
+  if (!nz) length = T(0);
+
+  T t_near[D], t_far[D], d_safe[D];
+  bool inside_axis[D];
+  T t_enter = -inf, t_exit = inf;
+  int entry_axis = 0;
+  bool starts_inside = true;
+  for (int k = 0; k < D; ++k) {
+    const T hi = g.lo[k] + T(g.n[k]) * g.res;
+    const bool moving = w.d[k] != T(0);
+    w.moving[k] = moving;
+    w.up[k] = w.d[k] > T(0);
+    d_safe[k] = moving ? w.d[k] : T(1);
+    const T ta = (g.lo[k] - o[k]) / d_safe[k];
+    const T tb = (hi - o[k]) / d_safe[k];
+    inside_axis[k] = (o[k] >= g.lo[k]) && (o[k] <= hi);
+    t_near[k] = moving ? std::min(ta, tb) : (inside_axis[k] ? -inf : inf);
+    t_far[k] = moving ? std::max(ta, tb) : (inside_axis[k] ? inf : -inf);
+    starts_inside = starts_inside && inside_axis[k];
+  }
+  // argmax: first index of the maximum, as jnp.argmax
+  t_enter = t_near[0];
+  t_exit = t_far[0];
+  for (int k = 1; k < D; ++k) {
+    if (t_near[k] > t_enter) {
+      t_enter = t_near[k];
+      entry_axis = k;
+    }
+    t_exit = std::min(t_exit, t_far[k]);
+  }
+  T t0 = std::max(t_enter, T(0));
+  T t1 = std::min(length, t_exit);
+  const bool active = (t0 < t1) || ((length == T(0)) && starts_inside);
+  if (!active) t1 = t0;
+  if (!std::isfinite(t0)) t0 = T(0);
+  if (!std::isfinite(t1)) t1 = t0;
+
+  for (int k = 0; k < D; ++k) {
+    const T p0 = o[k] + t0 * w.d[k];
+    const T rel = (p0 - g.lo[k]) / g.res;
+    T c = w.d[k] < T(0) ? std::ceil(rel) - T(1) : std::floor(rel);
+    const T nk = T(g.n[k]);
+    if (t_enter > T(0) && k == entry_axis) c = w.d[k] > T(0) ? T(0) : nk - T(1);
+    if (!std::isfinite(c)) c = T(0);
+    c = std::min(std::max(c, T(0)), nk - T(1));
+    w.cell[k] = static_cast<int32_t>(c);
+    w.c0[k] = w.cell[k];
+  }
+  const T eps = std::numeric_limits<T>::epsilon();
+  w.tol = T(32) * eps * (t1 + g.res);
+  const T big = std::numeric_limits<T>::max();
+  for (int k = 0; k < D; ++k) {
+    const T first =
+        (g.lo[k] - o[k] + T(w.cell[k] + (w.d[k] > T(0) ? 1 : 0)) * g.res) / d_safe[k];
+    w.t_first[k] = w.moving[k] ? first : inf;
+    const T scale = g.res / d_safe[k];
+    w.t_scale[k] = w.moving[k] ? std::min(std::max(scale, -big), big) : T(0);
+  }
+  w.t_start = t0;
+  w.t_end = t1;
+  w.t = t0;
+  w.active = active;
+}
+
+// One step: returns the cell walked (in `cell_out`), its segment length, whether the
+// segment is valid and whether it is the ray's last one; advances the walk.
+template <typename T, int D>
+inline void step(const Grid<T, D>& g, Walk<T, D>& w, int64_t& flat_out, int32_t* cell_out,
+                 T& seg_out, bool& valid_out, bool& last_out) {
+  T t_axis[D];
+  T t_min = std::numeric_limits<T>::infinity();
+  for (int k = 0; k < D; ++k) {
+    t_axis[k] = w.t_first[k] + T(w.cell[k] - w.c0[k]) * w.t_scale[k];
+    t_min = k == 0 ? t_axis[0] : std::min(t_min, t_axis[k]);
+  }
+  const bool last = t_min >= w.t_end - w.tol;
+  const T t_stop = last ? w.t_end : t_min;
+  T seg = std::max(t_stop - w.t, T(0));
+  const bool valid = w.active && ((seg > w.tol) || last);
+  if (!valid) seg = T(0);
+  int64_t flat = 0;
+  bool inside = true;
+  for (int k = 0; k < D; ++k) {
+    cell_out[k] = w.cell[k];
+    flat += int64_t(w.cell[k]) * g.stride[k];
+    if (w.moving[k] && t_axis[k] <= t_min + w.tol) w.cell[k] += w.up[k] ? 1 : -1;
+    inside = inside && (w.cell[k] >= 0) && (w.cell[k] < g.n[k]);
+  }
+  if (w.active) w.t = t_stop;
+  w.active = w.active && !last && inside;
+  flat_out = flat;
+  seg_out = seg;
+  valid_out = valid;
+  last_out = valid && (last || !inside);
+}
+
+template <typename T, int D>
+ffi::Error make_grid(const T* lo, const T* res, const int64_t* dims, int rank, Grid<T, D>& g) {
+  if (rank != D) return ffi::Error(ffi::ErrorCode::kInvalidArgument, "grid rank mismatch");
+  g.res = res[0];
+  if (!(std::isfinite(g.res) && g.res > T(0)))
+    return ffi::Error(ffi::ErrorCode::kInvalidArgument,
+                      "spec: resolution must be positive and finite");
+  int64_t stride = 1;
+  g.bound = D;
+  for (int k = D - 1; k >= 0; --k) {
+    g.lo[k] = lo[k];
+    if (!std::isfinite(g.lo[k]))
+      return ffi::Error(ffi::ErrorCode::kInvalidArgument, "spec: grid origin must be finite");
+    g.n[k] = static_cast<int32_t>(dims[k]);
+    g.stride[k] = stride;
+    stride *= dims[k];
+    g.bound += dims[k];
+  }
+  g.ncells = stride;
+  return ffi::Error::Success();
+}
+
+inline int64_t clamp_threads(int64_t threads, int64_t n_items, int64_t min_per_thread) {
+  if (threads <= 0) threads = std::max<int64_t>(1, std::thread::hardware_concurrency());
+  threads = std::min<int64_t>(threads, std::max<int64_t>(1, n_items / min_per_thread));
+  return std::max<int64_t>(1, std::min<int64_t>(threads, 256));
+}
+
+// Run fn(thread_index, begin, end) over [0, n) in interleaved blocks on `threads` threads.
+template <typename Fn>
+void parallel_blocks(int64_t n, int64_t threads, int64_t block, Fn fn) {
+  auto worker = [&](int64_t t) {
+    for (int64_t b = t * block; b < n; b += threads * block) fn(t, b, std::min(n, b + block));
+  };
+  if (threads == 1) {
+    worker(0);
+    return;
+  }
+  std::vector<std::thread> pool;
+  pool.reserve(threads - 1);
+  for (int64_t t = 1; t < threads; ++t) pool.emplace_back(worker, t);
+  worker(0);
+  for (auto& th : pool) th.join();
+}
+
+constexpr int64_t kBlock = 256;
+
+template <ffi::DataType DT, int D>
+ffi::Error Accumulate(ffi::Buffer<DT> spec_lo, ffi::Buffer<DT> spec_res, ffi::Buffer<DT> origins,
+                      ffi::Buffer<DT> directions, ffi::Buffer<DT> lengths,
+                      ffi::Buffer<ffi::PRED> is_hit, ffi::Buffer<ffi::PRED> use, int64_t threads,
+                      ffi::ResultBuffer<DT> r_out, ffi::ResultBuffer<ffi::S32> h_out,
+                      ffi::ResultBuffer<ffi::S32> m_out) {
+  using T = ffi::NativeType<DT>;
+  Grid<T, D> g;
+  auto dims = r_out->dimensions();
+  ffi::Error err = make_grid<T, D>(spec_lo.typed_data(), spec_res.typed_data(), dims.begin(),
+                                   static_cast<int>(dims.size()), g);
+  if (err.failure()) return err;
+  const int64_t n = lengths.element_count();
+  if (origins.element_count() != n * D || directions.element_count() != n * D)
+    return ffi::Error(ffi::ErrorCode::kInvalidArgument, "origins/directions must be [n d]");
+  const T* o = origins.typed_data();
+  const T* dir = directions.typed_data();
+  const T* len = lengths.typed_data();
+  const bool* hit = is_hit.typed_data();
+  const bool* usep = use.typed_data();
+  T* R = r_out->typed_data();
+  int32_t* H = h_out->typed_data();
+  int32_t* V = m_out->typed_data();  // visits first, misses at the end
+  threads = clamp_threads(threads, n, 4 * kBlock);
+  const int64_t nc = g.ncells;
+  std::vector<std::vector<T>> r_priv(threads - 1);
+  std::vector<std::vector<int32_t>> h_priv(threads - 1), v_priv(threads - 1);
+  for (int64_t t = 0; t + 1 < threads; ++t) {
+    r_priv[t].assign(nc, T(0));
+    h_priv[t].assign(nc, 0);
+    v_priv[t].assign(nc, 0);
+  }
+  std::fill(R, R + nc, T(0));
+  std::fill(H, H + nc, 0);
+  std::fill(V, V + nc, 0);
+  std::vector<char> overrun(threads, 0);
+  parallel_blocks(n, threads, kBlock, [&](int64_t t, int64_t b, int64_t e) {
+    T* r = t == 0 ? R : r_priv[t - 1].data();
+    int32_t* h = t == 0 ? H : h_priv[t - 1].data();
+    int32_t* v = t == 0 ? V : v_priv[t - 1].data();
+    Walk<T, D> w;
+    int32_t cell[D];
+    for (int64_t i = b; i < e; ++i) {
+      if (!usep[i]) continue;
+      setup<T, D>(g, o + i * D, dir + i * D, len[i], w);
+      const bool ends_inside = hit[i] && w.active && (w.t_end >= len[i] - w.tol);
+      bool ended = false;
+      int64_t last_flat = 0;
+      int64_t it = 0;
+      for (; it < g.bound && w.active; ++it) {
+        int64_t flat;
+        T seg;
+        bool valid, last;
+        step<T, D>(g, w, flat, cell, seg, valid, last);
+        if (valid) {
+          r[flat] += seg;
+          v[flat] += 1;
+          if (last) {
+            last_flat = flat;
+            ended = true;
+          }
+        }
+      }
+      if (w.active) overrun[t] = 1;
+      if (ends_inside && ended) h[last_flat] += 1;
+    }
+  });
+  for (char c : overrun)
+    if (c)
+      return ffi::Error(ffi::ErrorCode::kOutOfRange,
+                        "ray walk exceeded the grid's cell bound (non-finite input)");
+  if (threads > 1) {
+    parallel_blocks(nc, threads, std::max<int64_t>(4096, nc / threads + 1),
+                    [&](int64_t, int64_t b, int64_t e) {
+                      for (int64_t t = 0; t + 1 < threads; ++t) {
+                        const T* rp = r_priv[t].data();
+                        const int32_t* hp = h_priv[t].data();
+                        const int32_t* vp = v_priv[t].data();
+                        for (int64_t c = b; c < e; ++c) {
+                          R[c] += rp[c];
+                          H[c] += hp[c];
+                          V[c] += vp[c];
+                        }
+                      }
+                    });
+  }
+  for (int64_t c = 0; c < nc; ++c) V[c] -= H[c];
+  return ffi::Error::Success();
+}
+
+template <typename T, int MODE>
+inline T cell_term(const T* tab, int64_t nc, int64_t c, T seg) {
+  if constexpr (MODE == 0) {
+    return tab[c] + tab[nc + c] * seg;
+  } else if constexpr (MODE == 1) {
+    return tab[c] * seg;
+  } else if constexpr (MODE == 2) {
+    return tab[c];
+  } else {
+    // a * (log b - log(b + len)) for len > 0, tables a, b, log b
+    if (!(seg > T(0))) return T(0);
+    return tab[c] * (tab[2 * nc + c] - std::log(tab[nc + c] + seg));
+  }
+}
+
+template <ffi::DataType DT, int D, int MODE>
+ffi::Error Fold(ffi::Buffer<DT> spec_lo, ffi::Buffer<DT> spec_res, ffi::Buffer<DT> tables,
+                ffi::Buffer<DT> origins, ffi::Buffer<DT> directions, ffi::Buffer<DT> lengths,
+                int64_t threads, ffi::ResultBuffer<DT> body_out,
+                ffi::ResultBuffer<ffi::S32> last_cell_out, ffi::ResultBuffer<DT> last_len_out,
+                ffi::ResultBuffer<DT> grid_len_out, ffi::ResultBuffer<ffi::PRED> any_valid_out,
+                ffi::ResultBuffer<DT> t_start_out, ffi::ResultBuffer<DT> t_end_out) {
+  using T = ffi::NativeType<DT>;
+  Grid<T, D> g;
+  auto tdims = tables.dimensions();
+  if (tdims.size() != D + 1)
+    return ffi::Error(ffi::ErrorCode::kInvalidArgument, "tables must be [k *shape]");
+  ffi::Error err = make_grid<T, D>(spec_lo.typed_data(), spec_res.typed_data(),
+                                   tdims.begin() + 1, D, g);
+  if (err.failure()) return err;
+  const int64_t need = MODE == 0 ? 2 : (MODE == 3 ? 3 : 1);
+  if (tdims[0] != need)
+    return ffi::Error(ffi::ErrorCode::kInvalidArgument, "wrong number of term tables");
+  const int64_t n = lengths.element_count();
+  if (origins.element_count() != n * D || directions.element_count() != n * D)
+    return ffi::Error(ffi::ErrorCode::kInvalidArgument, "origins/directions must be [n d]");
+  const T* tab = tables.typed_data();
+  const T* o = origins.typed_data();
+  const T* dir = directions.typed_data();
+  const T* len = lengths.typed_data();
+  T* body = body_out->typed_data();
+  int32_t* last_cell = last_cell_out->typed_data();
+  T* last_len = last_len_out->typed_data();
+  T* grid_len = grid_len_out->typed_data();
+  bool* any_valid = any_valid_out->typed_data();
+  T* t_start = t_start_out->typed_data();
+  T* t_end = t_end_out->typed_data();
+  threads = clamp_threads(threads, n, kBlock);
+  const int64_t nc = g.ncells;
+  std::vector<char> overrun(threads, 0);
+  parallel_blocks(n, threads, kBlock, [&](int64_t t, int64_t b, int64_t e) {
+    Walk<T, D> w;
+    int32_t cell[D];
+    for (int64_t i = b; i < e; ++i) {
+      setup<T, D>(g, o + i * D, dir + i * D, len[i], w);
+      T acc = T(0), llen = T(0), glen = T(0);
+      bool anyv = false;
+      int32_t lc[D];
+      for (int k = 0; k < D; ++k) lc[k] = w.cell[k];
+      for (int64_t it = 0; it < g.bound && w.active; ++it) {
+        int64_t flat;
+        T seg;
+        bool valid, last;
+        step<T, D>(g, w, flat, cell, seg, valid, last);
+        if (valid) {
+          if (!last) {
+            acc = acc + cell_term<T, MODE>(tab, nc, flat, seg);
+          } else {
+            for (int k = 0; k < D; ++k) lc[k] = cell[k];
+            llen = seg;
+          }
+          anyv = true;
+        }
+        glen = glen + seg;
+      }
+      if (w.active) overrun[t] = 1;
+      body[i] = acc;
+      for (int k = 0; k < D; ++k) last_cell[i * D + k] = lc[k];
+      last_len[i] = llen;
+      grid_len[i] = glen;
+      any_valid[i] = anyv;
+      t_start[i] = w.t_start;
+      t_end[i] = w.t_end;
+    }
+  });
+  for (char c : overrun)
+    if (c)
+      return ffi::Error(ffi::ErrorCode::kOutOfRange,
+                        "ray walk exceeded the grid's cell bound (non-finite input)");
+  return ffi::Error::Success();
+}
+
+}  // namespace
+
+#define LIDARJAX_ACC(NAME, DT, D)                                   \
+  XLA_FFI_DEFINE_HANDLER_SYMBOL(NAME, (Accumulate<DT, D>),          \
+                                ffi::Ffi::Bind()                    \
+                                    .Arg<ffi::Buffer<DT>>()         \
+                                    .Arg<ffi::Buffer<DT>>()         \
+                                    .Arg<ffi::Buffer<DT>>()         \
+                                    .Arg<ffi::Buffer<DT>>()         \
+                                    .Arg<ffi::Buffer<DT>>()         \
+                                    .Arg<ffi::Buffer<ffi::PRED>>()  \
+                                    .Arg<ffi::Buffer<ffi::PRED>>()  \
+                                    .Attr<int64_t>("threads")       \
+                                    .Ret<ffi::Buffer<DT>>()         \
+                                    .Ret<ffi::Buffer<ffi::S32>>()   \
+                                    .Ret<ffi::Buffer<ffi::S32>>());
+
+LIDARJAX_ACC(LidarjaxAccumulateF32D2, ffi::F32, 2)
+LIDARJAX_ACC(LidarjaxAccumulateF32D3, ffi::F32, 3)
+LIDARJAX_ACC(LidarjaxAccumulateF64D2, ffi::F64, 2)
+LIDARJAX_ACC(LidarjaxAccumulateF64D3, ffi::F64, 3)
+
+#define LIDARJAX_FOLD(NAME, DT, D, MODE)                            \
+  XLA_FFI_DEFINE_HANDLER_SYMBOL(NAME, (Fold<DT, D, MODE>),          \
+                                ffi::Ffi::Bind()                    \
+                                    .Arg<ffi::Buffer<DT>>()         \
+                                    .Arg<ffi::Buffer<DT>>()         \
+                                    .Arg<ffi::Buffer<DT>>()         \
+                                    .Arg<ffi::Buffer<DT>>()         \
+                                    .Arg<ffi::Buffer<DT>>()         \
+                                    .Arg<ffi::Buffer<DT>>()         \
+                                    .Attr<int64_t>("threads")       \
+                                    .Ret<ffi::Buffer<DT>>()         \
+                                    .Ret<ffi::Buffer<ffi::S32>>()   \
+                                    .Ret<ffi::Buffer<DT>>()         \
+                                    .Ret<ffi::Buffer<DT>>()         \
+                                    .Ret<ffi::Buffer<ffi::PRED>>()  \
+                                    .Ret<ffi::Buffer<DT>>()         \
+                                    .Ret<ffi::Buffer<DT>>());
+
+#define LIDARJAX_FOLD_MODES(P, DT, D)             \
+  LIDARJAX_FOLD(P##M0, DT, D, 0)                  \
+  LIDARJAX_FOLD(P##M1, DT, D, 1)                  \
+  LIDARJAX_FOLD(P##M2, DT, D, 2)                  \
+  LIDARJAX_FOLD(P##M3, DT, D, 3)
+
+LIDARJAX_FOLD_MODES(LidarjaxFoldF32D2, ffi::F32, 2)
+LIDARJAX_FOLD_MODES(LidarjaxFoldF32D3, ffi::F32, 3)
+LIDARJAX_FOLD_MODES(LidarjaxFoldF64D2, ffi::F64, 2)
+LIDARJAX_FOLD_MODES(LidarjaxFoldF64D3, ffi::F64, 3)
+
+extern "C" int lidarjax_native_abi_version() { return 1; }

@@ -4,7 +4,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed-stamp
 
-.PHONY: demo test bench lint install clean
+.PHONY: demo test bench lint install native clean
 
 $(PY):
 	$(PYTHON) -m venv $(VENV)
@@ -15,16 +15,22 @@ $(STAMP): pyproject.toml | $(PY)
 	$(PY) -m pip install --quiet -e '.[dev]'
 	touch $(STAMP)
 
-install: $(STAMP)
+install: $(STAMP) native
 
-demo: $(STAMP)
+# Native ray kernels (C++ through the XLA FFI, headers of the installed jaxlib). The build
+# script rebuilds only when a C++ source, the jaxlib version or the flags changed; without
+# a compiler it says so and the pure-JAX path is used.
+native: $(STAMP)
+	$(PY) -m lidarjax.raytrace._build --optional
+
+demo: install
 	$(PY) experiments/demo.py
 
-test: $(STAMP)
+test: install
 	$(VENV)/bin/ruff check .
 	$(PY) -m pytest -q
 
-bench: $(STAMP)
+bench: install
 	@set -e; for b in benchmarks/[a-z]*.py; do echo "== $$b"; $(PY) $$b; done
 
 lint: $(STAMP)
@@ -33,3 +39,4 @@ lint: $(STAMP)
 
 clean:
 	rm -rf $(VENV) outputs multirun .pytest_cache
+	rm -f lidarjax/raytrace/_lidarjax_native.so lidarjax/raytrace/_lidarjax_native.json

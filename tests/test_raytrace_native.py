@@ -197,7 +197,7 @@ def _terms(shape, rng):
 @pytest.mark.parametrize("dim", [2, 3])
 def test_fold_every_term_matches_jax(dim):
     rng = np.random.default_rng(11)
-    spec, o, d, r = _geometry(dim, n_random=300)
+    spec, o, d, r = _geometry(dim, n_random=150)
     r = np.concatenate([r[:-5], [np.inf] * 5])  # some rays traced to the border
     args = (spec, jnp.asarray(o), jnp.asarray(d), jnp.asarray(r))
     for term in _terms(spec.shape, rng):
@@ -210,8 +210,11 @@ def test_fold_every_term_matches_jax(dim):
 
 
 @native
-@pytest.mark.parametrize("limits", LIMITS, ids=["finite", "rmin0_rmaxinf", "short_rmax"])
-@pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize(
+    ("dim", "limits"),
+    [(2, LIMITS[0]), (2, LIMITS[1]), (2, LIMITS[2]), (3, LIMITS[0]), (3, LIMITS[1])],
+    ids=["2d-finite", "2d-rmin0_rmaxinf", "2d-short_rmax", "3d-finite", "3d-rmin0_rmaxinf"],
+)
 def test_every_grid_model_native_matches_jax(dim, limits):
     spec, o, d, r = _geometry(dim, n_random=60)
     rays = _all_kinds(o, d, r, *limits)
@@ -400,18 +403,22 @@ def test_native_rejects_non_finite_rays(bad, jit):
 
 
 @native
-def test_kernel_bound_stops_a_nan_walk():
-    """Bypassing the input checks, the kernel's own iteration bound ends a NaN walk with
-    an error instead of spinning."""
+def test_kernel_validates_rays_itself():
+    """Called directly (no JAX-side checks), the kernels reject a NaN direction with an
+    error naming the first bad ray instead of walking it (a walk of finite rays always
+    ends within walk_bound steps; the kernels enforce that bound too)."""
     spec = GridSpec([0.0, 0.0], 0.1, (50, 60))
-    o = jnp.asarray([[1.0, 1.0]])
-    d = jnp.asarray([[math.nan, 0.5]])
-    with pytest.raises(Exception, match="cell bound"):
-        jax.block_until_ready(
-            _native.accumulate(
-                spec, o, d, jnp.asarray([3.0]), jnp.asarray([True]), jnp.asarray([True]), 1
-            )[0]
-        )
+    o = jnp.asarray([[1.0, 1.0], [2.0, 2.0]])
+    d = jnp.asarray([[1.0, 0.0], [math.nan, 0.5]])
+    r = jnp.asarray([3.0, 3.0])
+    kind = jnp.asarray([HIT, HIT], jnp.int32)
+    with pytest.raises(Exception, match=r"directions must be finite.*first bad ray: 1"):
+        jax.block_until_ready(_native.accumulate(spec, o, d, r, kind, 10.0, False, 1)[0])
+    tab = jnp.ones((1, *spec.shape))
+    with pytest.raises(Exception, match=r"directions must be finite.*first bad ray: 1"):
+        jax.block_until_ready(_native.fold(spec, 1, tab, o, d, r, 1)[0])
+    with pytest.raises(Exception, match=r"lengths must be >= 0.*first bad ray: 0"):
+        jax.block_until_ready(_native.fold(spec, 1, tab, o, o, -r, 1)[0])
 
 
 @native

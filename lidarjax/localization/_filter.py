@@ -193,12 +193,21 @@ def init_global(
     """``n`` SE(2) particles uniform over the free cells of a 2-D grid (uniform position
     inside a free cell chosen uniformly, uniform heading): global localization.
 
+    Inverse-CDF sampling over the running count of free cells (``cumsum`` +
+    ``searchsorted``): memory ``O(n + cells)`` and time ``O(cells + n log cells)``, so
+    100 000 particles on a 631 x 629 grid need a few MB. Jittable (``free`` may be
+    traced; an all-False mask then raises at run time through ``eqx.error_if``).
+
     Args:
-        n: number of particles.
+        n: number of particles (static).
         spec: the 2-D :class:`~lidarjax.raytrace.GridSpec`.
         free: ``[nx ny]`` bool mask of free cells (e.g. ``occupancy < 0.2`` of visited
             cells); at least one must be True.
         key: PRNG key.
+
+    Raises:
+        ValueError: bad ``n``, a non-2-D grid, a mask of the wrong shape/dtype, or (when
+            concrete) no free cell.
     """
     n = _check_n(n)
     free = jnp.asarray(free)
@@ -207,11 +216,15 @@ def init_global(
             f"free must be a bool array of the 2-D grid's shape {spec.shape}, got "
             f"{free.dtype} {free.shape}"
         )
-    if not bool(jnp.any(free)):
+    if is_concrete(free) and not bool(np.any(np.asarray(free))):
         raise ValueError("free has no True cell to sample from")
     k_c, k_u, k_h, k_next = jax.random.split(key, 4)
-    logits = jnp.where(free.ravel(), 0.0, -jnp.inf)
-    flat = jax.random.categorical(k_c, logits, shape=(n,))
+    counts = jnp.cumsum(free.ravel().astype(jnp.int32))  # [cells], counts[-1] = #free
+    total = counts[-1]
+    total = eqx.error_if(total, total <= 0, "free has no True cell to sample from")
+    # the r-th free cell (r uniform in 0..total-1) is the first index with count > r
+    r = jax.random.randint(k_c, (n,), 0, jnp.maximum(total, 1))
+    flat = jnp.searchsorted(counts, r, side="right")
     ij = jnp.stack(jnp.unravel_index(flat, spec.shape), axis=-1)
     dtype = spec.origin.dtype
     u = jax.random.uniform(k_u, (n, 2), dtype=dtype)

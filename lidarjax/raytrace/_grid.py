@@ -37,7 +37,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from ..rays import HIT, SUB, SUP, RayBatch, is_concrete
 from . import _native
-from ._primitives import clip_to_box, slabs
+from ._primitives import clip_to_box, n_chunks_for, pad_to_chunks, slabs
 
 
 class GridSpec(eqx.Module):
@@ -717,49 +717,35 @@ def _box_diagonal(spec: GridSpec):
     return spec.resolution * math.sqrt(sum(s * s for s in spec.shape))
 
 
-_MAX_RAYS_PER_CALL = 1 << 24
+_BLOCK_RAYS = 1 << 16
 
 
-@functools.partial(jax.jit, static_argnames=("chunk_size",))
-def _accumulate(
-    spec: GridSpec,
-    origins,
-    directions,
-    lengths,
-    ray_hits,
-    use,
-    *,
-    chunk_size: int,
-):
+def _walk_block(spec: GridSpec, origins, directions, lengths, ray_hits, use, chunk_size: int):
+    """``(R, V, H)`` (lengths, visits = H + M, hits) of one block of rays, flat
+    ``[n_cells]``: the block is sorted by expected work and walked in chunks."""
     dtype = origins.dtype
-    n = origins.shape[0]
-    origins, directions, checked = check_rays(spec, origins, directions, jnp.where(use, lengths, 0))
-    lengths = jnp.where(use, checked, lengths)
     # Sort by expected work so each chunk's while-loop runs about as long as its rays need.
     # expected cells walked: L1 length of the part of the ray inside the grid box
     t_in, t_out = _clip_to_box(spec, origins, directions, lengths)
     work = jnp.sum(jnp.abs(directions), axis=-1) * jnp.maximum(t_out - t_in, 0.0)
     work = jnp.where(use, work, -1.0)
     order = jnp.argsort(work)
-    n_chunks = max(1, -(-n // chunk_size))
-    pad = n_chunks * chunk_size - n
-
-    def prep(x, fill):
-        x = x[order]
-        widths = [(0, pad)] + [(0, 0)] * (x.ndim - 1)
-        return jnp.pad(x, widths, constant_values=fill).reshape(n_chunks, chunk_size, *x.shape[1:])
-
-    o_c = prep(origins, 0.0)
-    d_c = prep(directions, 0.0)
-    l_c = prep(lengths, 0.0)
-    h_c = prep(ray_hits, False)
-    u_c = prep(use, False)
+    o_c, d_c, l_c, h_c, u_c = (
+        pad_to_chunks(x[order], chunk_size, fill)
+        for x, fill in (
+            (origins, 0.0),
+            (directions, 0.0),
+            (lengths, 0.0),
+            (ray_hits, False),
+            (use, False),
+        )
+    )
     n_cells = spec.n_cells
     strides = jnp.asarray(np.cumprod((1,) + spec.shape[:0:-1])[::-1].copy(), jnp.int32)
     # Accumulators (last entry = bin for padding): lengths R, visits V = H + M, hits H.
     # Lengths R (real part) and visits V = H + M (imaginary part) share one complex
     # accumulator: one scatter per step instead of two (~1.4x faster on CPU). V is exact
-    # while it stays below 2**24 (float32) -- the caller bounds the rays per call.
+    # while it stays below 2**24 (float32): a block has at most _BLOCK_RAYS rays.
     cdtype = jnp.complex64 if dtype == jnp.float32 else jnp.complex128
     acc0 = (jnp.zeros(n_cells + 1, cdtype), jnp.zeros(n_cells + 1, jnp.int32))
 
@@ -798,17 +784,55 @@ def _accumulate(
         return (rv, hits), None
 
     (rv, hits), _ = jax.lax.scan(chunk_body, acc0, (o_c, d_c, l_c, h_c, u_c))
+    visits = jnp.round(rv.imag[:n_cells]).astype(jnp.int32)
+    return rv.real[:n_cells], visits, hits[:n_cells]
+
+
+@functools.partial(jax.jit, static_argnames=("chunk_size", "block", "sub_as_hit"))
+def _accumulate(
+    spec: GridSpec,
+    origins,
+    directions,
+    ranges,
+    kind,
+    r_max,
+    *,
+    chunk_size: int,
+    block: int,
+    sub_as_hit: bool,
+):
+    """JAX path of :func:`accumulate`: a ``lax.scan`` over blocks of ``block`` rays read
+    with ``dynamic_slice`` (the last block is shifted back to stay in bounds and masks the
+    rays an earlier block took), so temporaries are ``O(block + n_cells)``."""
+    dtype = origins.dtype
+    n = origins.shape[0]
+    block = min(block, n)
+    n_blocks = n_chunks_for(n, block)
+
+    def block_body(carry, b):
+        start = jnp.minimum(b * block, n - block)
+        take = lambda x: jax.lax.dynamic_slice_in_dim(x, start, block)  # noqa: E731
+        o, d, rng, k = take(origins), take(directions), take(ranges), take(kind)
+        fresh = start + jnp.arange(block) >= b * block
+        is_hit = (k == HIT) | ((k == SUB) & sub_as_hit)
+        use = fresh & (is_hit | (k == SUP))
+        trace = jnp.where(k == SUP, r_max.astype(dtype), rng)
+        o, d, checked = check_rays(spec, o, d, jnp.where(use, trace, 0))
+        trace = jnp.where(use, checked, trace)
+        r_b, v_b, h_b = _walk_block(spec, o, d, trace, is_hit, use, chunk_size)
+        r, v, h = carry
+        return (r + r_b, v + v_b, h + h_b), None
+
+    n_cells = spec.n_cells
+    init = (jnp.zeros(n_cells, dtype), jnp.zeros(n_cells, jnp.int32), jnp.zeros(n_cells, jnp.int32))
+    (r, v, h), _ = jax.lax.scan(block_body, init, jnp.arange(n_blocks))
     shape = spec.shape
-    hits = hits[:n_cells].reshape(shape)
-    visits = jnp.round(rv.imag[:n_cells]).astype(jnp.int32).reshape(shape)
-    return rv.real[:n_cells].reshape(shape), visits - hits, hits
+    return r.reshape(shape), (v - h).reshape(shape), h.reshape(shape)
 
 
-@functools.partial(jax.jit, static_argnames=("threads",))
-def _accumulate_native(spec: GridSpec, origins, directions, lengths, ray_hits, use, *, threads):
-    origins, directions, checked = check_rays(spec, origins, directions, jnp.where(use, lengths, 0))
-    lengths = jnp.where(use, checked, lengths)
-    return _native.accumulate(spec, origins, directions, lengths, ray_hits, use, threads)
+@functools.partial(jax.jit, static_argnames=("sub_as_hit", "threads"))
+def _accumulate_native(spec, origins, directions, ranges, kind, r_max, *, sub_as_hit, threads):
+    return _native.accumulate(spec, origins, directions, ranges, kind, r_max, sub_as_hit, threads)
 
 
 def accumulate(
@@ -828,14 +852,18 @@ def accumulate(
     count as misses up to ``r_max``. SUB rays contribute nothing by default; with
     ``sub_rays="hit"`` they are treated as hits at their recorded range.
 
-    Memory is ``O(chunk_size + n_cells)`` besides the rays themselves: rays are sorted by
-    expected cell count, split into chunks of ``chunk_size`` and each chunk is walked
-    until its longest ray ends, so no ray is truncated.
+    Memory besides the rays themselves: the native kernel needs ``threads`` private
+    accumulators (``O(threads * n_cells)``) and nothing per ray; the JAX path scans over
+    blocks of 65 536 rays, each sorted by expected cell count, split into chunks of
+    ``chunk_size`` and walked until its longest ray ends (``O(block + n_cells)``), so no
+    ray is truncated. Every walk is bounded by :func:`walk_bound`; non-finite origins or
+    directions and NaN or negative traced lengths raise (``eqx.error_if`` on the JAX
+    path, an ``XlaRuntimeError`` from the kernel), eagerly and under ``jit``.
 
     Args:
         spec: the grid; its dimension must match the rays'.
         rays: any batch shape.
-        chunk_size: rays walked together (static).
+        chunk_size: rays walked together by the JAX path (static).
         sub_rays: ``"ignore"`` or ``"hit"``.
         backend: ``"auto"`` (native C++ walk when built, else JAX with one warning),
             ``"native"`` or ``"jax"``; see :mod:`lidarjax.raytrace._native`. Both give the
@@ -859,47 +887,29 @@ def accumulate(
     if backend not in _native.BACKENDS:
         raise ValueError(f"backend must be one of {_native.BACKENDS}, got {backend!r}")
     flat = rays.flatten()
-    if flat.ranges.shape[0] == 0:
+    n = flat.ranges.shape[0]
+    if n == 0:
         raise ValueError("rays is empty")
     dtype = jnp.result_type(flat.origins.dtype, spec.origin.dtype)
-    kind = flat.kind
-    is_hit = kind == HIT
-    use = (kind == HIT) | (kind == SUP)
-    if sub_rays == "hit":
-        is_hit = is_hit | (kind == SUB)
-        use = use | (kind == SUB)
-    trace = jnp.where(kind == SUP, flat.r_max, flat.ranges).astype(dtype)
+    args = (
+        flat.origins.astype(dtype),
+        flat.directions.astype(dtype),
+        flat.ranges.astype(dtype),
+        flat.kind,
+        jnp.asarray(flat.r_max, dtype),
+    )
     if _native.resolve(backend) == "native":
         lengths, misses, hits = _accumulate_native(
-            spec,
-            flat.origins.astype(dtype),
-            flat.directions.astype(dtype),
-            trace,
-            is_hit,
-            use,
-            threads=threads,
+            spec, *args, sub_as_hit=sub_rays == "hit", threads=threads
         )
-        return GridStats(spec=spec, hits=hits, misses=misses, lengths=lengths)
-    n = flat.ranges.shape[0]
-    chunk = min(chunk_size, n)
-    # Visit counts are summed as floats inside one call; at most _MAX_RAYS_PER_CALL rays
-    # per call keep them exact (each ray visits a cell at most once).
-    lengths = misses = hits = None
-    for lo in range(0, n, _MAX_RAYS_PER_CALL):
-        sl = slice(lo, min(n, lo + _MAX_RAYS_PER_CALL))
-        part = _accumulate(
+    else:
+        lengths, misses, hits = _accumulate(
             spec,
-            flat.origins[sl].astype(dtype),
-            flat.directions[sl].astype(dtype),
-            trace[sl],
-            is_hit[sl],
-            use[sl],
-            chunk_size=chunk,
+            *args,
+            chunk_size=min(chunk_size, n),
+            block=max(_BLOCK_RAYS, chunk_size),
+            sub_as_hit=sub_rays == "hit",
         )
-        if lengths is None:
-            lengths, misses, hits = part
-        else:
-            lengths, misses, hits = lengths + part[0], misses + part[1], hits + part[2]
     return GridStats(spec=spec, hits=hits, misses=misses, lengths=lengths)
 
 

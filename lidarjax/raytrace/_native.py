@@ -29,8 +29,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import _build
-
 Backend = Literal["auto", "native", "jax"]
 BACKENDS = ("auto", "native", "jax")
 TERM_MODES = {0: 2, 1: 1, 2: 1, 3: 3}  # mode -> number of tables
@@ -50,6 +48,8 @@ def _dt(dtype) -> str:
 def _load() -> bool:
     if _state["loaded"] is not None:
         return _state["loaded"]
+    from . import _build  # imported lazily: `python -m lidarjax.raytrace._build` stays clean
+
     ok, reason = False, None
     if not _build.LIBRARY.exists():
         reason = (
@@ -147,15 +147,20 @@ def check_threads(threads: int | None) -> int:
     return threads
 
 
-def accumulate(spec, origins, directions, lengths, is_hit, use, threads: int):
+def accumulate(spec, origins, directions, ranges, kind, r_max, sub_as_hit: bool, threads: int):
     """Native :func:`~lidarjax.raytrace.accumulate` core: ``(R, M, H)`` of ``spec.shape``.
+
+    The kernel reads the rays as they are (no per-ray temporaries) and validates them
+    itself: a non-finite origin or direction, or a NaN/negative traced range, is an
+    ``XlaRuntimeError`` naming the first bad ray.
 
     Args:
         spec: the grid (``GridSpec``).
         origins, directions: ``[n d]`` rays (float32 or float64, same dtype).
-        lengths: ``[n]`` trace lengths (m).
-        is_hit: ``[n]`` bool, the ray reflects at its length.
-        use: ``[n]`` bool, the ray contributes at all.
+        ranges: ``[n]`` measured ranges (m).
+        kind: ``[n]`` int32 ``HIT``/``SUB``/``SUP``.
+        r_max: ``[]`` trace length of SUP rays (m; may be ``inf``).
+        sub_as_hit: trace SUB rays like HIT rays (else they are ignored).
         threads: worker threads.
     """
     dtype = origins.dtype
@@ -171,9 +176,10 @@ def accumulate(spec, origins, directions, lengths, is_hit, use, threads: int):
         spec.resolution.astype(dtype),
         origins,
         directions.astype(dtype),
-        lengths.astype(dtype),
-        is_hit.astype(bool),
-        use.astype(bool),
+        ranges.astype(dtype),
+        kind.astype(jnp.int32),
+        jnp.asarray(r_max, dtype),
+        sub_as_hit=bool(sub_as_hit),
         threads=np.int64(threads),
     )
     return r, m, h

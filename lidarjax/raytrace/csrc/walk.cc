@@ -9,15 +9,17 @@
 // ulp between contexts; the kernels here divide exactly (correctly rounded).
 //
 // Kernels (T = float or double, D = 2 or 3):
-//   Accumulate<T, D>: per-cell R (lengths), H (hits), M (misses) of a ray batch; rays are
-//     split over `threads` worker threads with private accumulators merged at the end.
+//   Accumulate<T, D>: per-cell R (lengths), H (hits), M (misses) of a ray batch from the
+//     rays' kinds (HIT/SUB/SUP); rays are split over `threads` worker threads with private
+//     accumulators merged at the end. Memory: threads x cells, nothing per ray.
 //   Fold<T, D, MODE>: per-ray fold of a per-cell term (body sum over all cells but the last,
 //     last cell, its length, length inside the grid, any cell visited, t_start, t_end), the
 //     input of every grid sensor model's finish. MODE selects the term from per-cell tables:
 //       0: A[c] + B[c] * len   1: B[c] * len   2: A[c]
 //       3: len > 0 ? a[c] * (log b[c] - log(b[c] + len)) : 0   (Gamma posterior, Sec. 8.4.5)
-// Every loop over cells is bounded by sum(shape) + D steps; a walk still running there
-// (only possible with non-finite input, which the Python side rejects first) is an error.
+// Both kernels reject non-finite origins/directions and NaN or negative lengths (an error
+// naming the first bad ray). Every loop over cells is bounded by sum(shape) + D steps; a
+// walk still running there (impossible with finite input) is an error too.
 
 #include <algorithm>
 #include <cmath>
@@ -208,26 +210,58 @@ void parallel_blocks(int64_t n, int64_t threads, int64_t block, Fn fn) {
 
 constexpr int64_t kBlock = 256;
 
+constexpr int32_t kHit = 0, kSub = 1, kSup = 2;  // lidarjax.rays.HIT, SUB, SUP
+
+// First ray index with a non-finite origin or direction component (or -1).
+template <typename T, int D>
+int64_t first_non_finite(const T* x, int64_t n) {
+  for (int64_t i = 0; i < n * D; ++i)
+    if (!std::isfinite(x[i])) return i / D;
+  return -1;
+}
+
+ffi::Error bad_ray(const char* what, int64_t i) {
+  return ffi::Error(ffi::ErrorCode::kInvalidArgument,
+                    std::string("rays: ") + what + " (first bad ray: " + std::to_string(i) +
+                        ")");
+}
+
+// Per-cell R, H, M of a ray batch. Ray kinds decide the trace: HIT rays to their range
+// (a hit in the last cell if the end point lies inside the grid), SUP rays to r_max (all
+// misses), SUB rays nothing, or like HIT rays with sub_as_hit. No per-ray temporaries.
 template <ffi::DataType DT, int D>
 ffi::Error Accumulate(ffi::Buffer<DT> spec_lo, ffi::Buffer<DT> spec_res, ffi::Buffer<DT> origins,
-                      ffi::Buffer<DT> directions, ffi::Buffer<DT> lengths,
-                      ffi::Buffer<ffi::PRED> is_hit, ffi::Buffer<ffi::PRED> use, int64_t threads,
-                      ffi::ResultBuffer<DT> r_out, ffi::ResultBuffer<ffi::S32> h_out,
-                      ffi::ResultBuffer<ffi::S32> m_out) {
+                      ffi::Buffer<DT> directions, ffi::Buffer<DT> ranges,
+                      ffi::Buffer<ffi::S32> kinds, ffi::Buffer<DT> r_max_buf, bool sub_as_hit,
+                      int64_t threads, ffi::ResultBuffer<DT> r_out,
+                      ffi::ResultBuffer<ffi::S32> h_out, ffi::ResultBuffer<ffi::S32> m_out) {
   using T = ffi::NativeType<DT>;
   Grid<T, D> g;
   auto dims = r_out->dimensions();
   ffi::Error err = make_grid<T, D>(spec_lo.typed_data(), spec_res.typed_data(), dims.begin(),
                                    static_cast<int>(dims.size()), g);
   if (err.failure()) return err;
-  const int64_t n = lengths.element_count();
-  if (origins.element_count() != n * D || directions.element_count() != n * D)
-    return ffi::Error(ffi::ErrorCode::kInvalidArgument, "origins/directions must be [n d]");
+  const int64_t n = ranges.element_count();
+  if (origins.element_count() != n * D || directions.element_count() != n * D ||
+      kinds.element_count() != n)
+    return ffi::Error(ffi::ErrorCode::kInvalidArgument,
+                      "origins/directions must be [n d] and kind [n]");
   const T* o = origins.typed_data();
   const T* dir = directions.typed_data();
-  const T* len = lengths.typed_data();
-  const bool* hit = is_hit.typed_data();
-  const bool* usep = use.typed_data();
+  const T* rng = ranges.typed_data();
+  const int32_t* kind = kinds.typed_data();
+  const T r_max = r_max_buf.typed_data()[0];
+  if (std::isnan(r_max) || r_max < T(0))
+    return ffi::Error(ffi::ErrorCode::kInvalidArgument, "rays: r_max must be >= 0, not NaN");
+  int64_t bad = first_non_finite<T, D>(o, n);
+  if (bad >= 0) return bad_ray("ray origins must be finite (NaN or inf pose?)", bad);
+  bad = first_non_finite<T, D>(dir, n);
+  if (bad >= 0) return bad_ray("ray directions must be finite (NaN or inf heading/azimuth?)", bad);
+  for (int64_t i = 0; i < n; ++i) {
+    const bool traced = kind[i] == kHit || (kind[i] == kSub && sub_as_hit);
+    if (traced && (std::isnan(rng[i]) || rng[i] < T(0)))
+      return bad_ray("ray lengths must be >= 0 and not NaN", i);
+  }
   T* R = r_out->typed_data();
   int32_t* H = h_out->typed_data();
   int32_t* V = m_out->typed_data();  // visits first, misses at the end
@@ -251,13 +285,23 @@ ffi::Error Accumulate(ffi::Buffer<DT> spec_lo, ffi::Buffer<DT> spec_res, ffi::Bu
     Walk<T, D> w;
     int32_t cell[D];
     for (int64_t i = b; i < e; ++i) {
-      if (!usep[i]) continue;
-      setup<T, D>(g, o + i * D, dir + i * D, len[i], w);
-      const bool ends_inside = hit[i] && w.active && (w.t_end >= len[i] - w.tol);
+      const int32_t k = kind[i];
+      bool is_hit;
+      T len;
+      if (k == kHit || (k == kSub && sub_as_hit)) {
+        is_hit = true;
+        len = rng[i];
+      } else if (k == kSup) {
+        is_hit = false;
+        len = r_max;
+      } else {
+        continue;
+      }
+      setup<T, D>(g, o + i * D, dir + i * D, len, w);
+      const bool ends_inside = is_hit && w.active && (w.t_end >= len - w.tol);
       bool ended = false;
       int64_t last_flat = 0;
-      int64_t it = 0;
-      for (; it < g.bound && w.active; ++it) {
+      for (int64_t it = 0; it < g.bound && w.active; ++it) {
         int64_t flat;
         T seg;
         bool valid, last;
@@ -338,6 +382,13 @@ ffi::Error Fold(ffi::Buffer<DT> spec_lo, ffi::Buffer<DT> spec_res, ffi::Buffer<D
   const T* o = origins.typed_data();
   const T* dir = directions.typed_data();
   const T* len = lengths.typed_data();
+  int64_t bad = first_non_finite<T, D>(o, n);
+  if (bad >= 0) return bad_ray("ray origins must be finite (NaN or inf pose?)", bad);
+  bad = first_non_finite<T, D>(dir, n);
+  if (bad >= 0) return bad_ray("ray directions must be finite (NaN or inf heading/azimuth?)", bad);
+  for (int64_t i = 0; i < n; ++i)
+    if (std::isnan(len[i]) || len[i] < T(0))
+      return bad_ray("ray lengths must be >= 0 and not NaN", i);
   T* body = body_out->typed_data();
   int32_t* last_cell = last_cell_out->typed_data();
   T* last_len = last_len_out->typed_data();
@@ -400,8 +451,9 @@ ffi::Error Fold(ffi::Buffer<DT> spec_lo, ffi::Buffer<DT> spec_res, ffi::Buffer<D
                                     .Arg<ffi::Buffer<DT>>()         \
                                     .Arg<ffi::Buffer<DT>>()         \
                                     .Arg<ffi::Buffer<DT>>()         \
-                                    .Arg<ffi::Buffer<ffi::PRED>>()  \
-                                    .Arg<ffi::Buffer<ffi::PRED>>()  \
+                                    .Arg<ffi::Buffer<ffi::S32>>()   \
+                                    .Arg<ffi::Buffer<DT>>()         \
+                                    .Attr<bool>("sub_as_hit")       \
                                     .Attr<int64_t>("threads")       \
                                     .Ret<ffi::Buffer<DT>>()         \
                                     .Ret<ffi::Buffer<ffi::S32>>()   \

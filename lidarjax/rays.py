@@ -8,9 +8,23 @@ Eq. (7.14) of the dissertation.
 The leading axes of a :class:`RayBatch` are free (``[*batch]``); kernels are written for one
 ray and batched with ``vmap``; :meth:`RayBatch.flatten` gives the ``[n]`` layout that
 :func:`lidarjax.raytrace.accumulate` and the sensor models consume.
+
+Validation: every builder here (and :class:`RayBatch` itself) rejects NaN or infinite poses,
+azimuths, directions and points, NaN or negative ranges, and bad limits (``r_min`` negative
+or not finite, ``r_max <= r_min`` for the builders, ``r_max < r_min`` for a
+:class:`RayBatch` built directly). Concrete values raise ``ValueError`` at once, naming the
+argument; values traced under ``jit``/``vmap``/``grad`` are checked at run time with
+``eqx.error_if`` (``EquinoxRuntimeError`` under ``eqx.filter_jit``, ``JaxRuntimeError``
+under ``jax.jit``), whose message names the argument too. A NaN range reading is always an
+error, never a kind: :func:`classify` would otherwise call it a HIT (``NaN < r_min`` and
+``NaN >= r_max`` are both false). Give no-returns as ``+inf`` (see
+:func:`from_spinning_scan`) or drop them.
 """
 
 from __future__ import annotations
+
+import functools
+from collections.abc import Callable
 
 import equinox as eqx
 import jax
@@ -47,6 +61,26 @@ def _scan_batch(T_world_sensor, data_axes: tuple[int, ...], name: str) -> tuple[
         ) from e
 
 
+def _reject(x, bad: Callable, message: str, deps: tuple = ()):
+    """``x`` checked against the elementwise predicate ``bad(xp, x)`` (``xp`` is ``np`` or
+    ``jnp``; ``deps`` are other arrays ``bad`` reads): if ``x`` and ``deps`` are concrete,
+    a bad entry raises ``ValueError(message ...)`` at once and ``x`` is returned unchanged;
+    otherwise ``x`` is returned as an array carrying ``eqx.error_if`` (use it)."""
+    if is_concrete(x) and all(is_concrete(v) for v in deps):
+        arr = np.asarray(x)
+        if arr.size and not (np.issubdtype(arr.dtype, np.number) or arr.dtype == np.bool_):
+            raise ValueError(f"{message}; got non-numeric dtype {arr.dtype}")
+        mask = np.broadcast_to(np.asarray(bad(np, arr)), arr.shape)
+        if np.any(mask):
+            first = tuple(int(i) for i in np.argwhere(mask)[0])
+            raise ValueError(
+                f"{message}; found {arr[first]!r} at index {first} ({int(mask.sum())} bad values)"
+            )
+        return x
+    x = jnp.asarray(x)
+    return eqx.error_if(x, bad(jnp, x), message)
+
+
 def check_finite_nonnegative(x: ArrayLike, name: str) -> Array:
     """Return ``x`` as an array, raising if any entry is NaN, infinite or negative.
 
@@ -57,24 +91,71 @@ def check_finite_nonnegative(x: ArrayLike, name: str) -> Array:
         x: values to check, any shape.
         name: the argument's name, quoted in the error message.
     """
-    if is_concrete(x):
-        arr = np.asarray(x)
-        if arr.size and not np.issubdtype(arr.dtype, np.number):
-            raise ValueError(f"{name} must be numeric, got dtype {arr.dtype}")
-        bad = ~np.isfinite(arr) | (arr < 0)
-        if np.any(bad):
-            first = np.argwhere(bad)[0]
-            raise ValueError(
-                f"{name} must be finite and non-negative; found {arr[tuple(first)]!r} at "
-                f"index {tuple(int(i) for i in first)} ({int(bad.sum())} bad values)"
-            )
-        return jnp.asarray(x)
-    x = jnp.asarray(x)
-    return eqx.error_if(x, ~jnp.isfinite(x) | (x < 0), f"{name} must be finite and non-negative")
+    x = _reject(
+        x, lambda xp, a: ~xp.isfinite(a) | (a < 0), f"{name} must be finite and non-negative"
+    )
+    return jnp.asarray(x)
+
+
+def check_finite(x: ArrayLike, name: str) -> Array:
+    """Return ``x`` as an array, raising if any entry is NaN or infinite (``ValueError`` when
+    concrete, ``eqx.error_if`` when traced; use the returned array).
+
+    Args:
+        x: values to check, any shape.
+        name: the argument's name, quoted in the error message.
+    """
+    return jnp.asarray(_reject(x, lambda xp, a: ~xp.isfinite(a), f"{name} must be finite"))
+
+
+def check_pose(T, name: str = "T_world_sensor"):
+    """Return the ``jaxlie`` group element ``T`` with its parameters checked to be finite
+    (a NaN or infinite heading, rotation or translation: ``ValueError`` when concrete,
+    ``eqx.error_if`` when traced; use the returned pose).
+
+    Args:
+        T: a ``jaxlie`` group element (``SE2``, ``SE3``, ...), any batch axes.
+        name: the argument's name, quoted in the error message.
+    """
+    message = f"{name} must be finite (NaN or infinite pose parameters)"
+    return jax.tree.map(lambda p: _reject(p, lambda xp, a: ~xp.isfinite(a), message), T)
+
+
+def _check_ranges(ranges, kind, name: str):
+    """Ranges not NaN, not negative, and ``+inf`` only for SUP rays."""
+
+    def bad(xp, r):
+        k = xp.asarray(kind)
+        return xp.isnan(r) | (r < 0) | (xp.isinf(r) & (k != SUP))
+
+    message = f"{name} must be >= 0 and not NaN (+inf only for SUP rays, kind={SUP})"
+    return _reject(ranges, bad, message, deps=(kind,))
+
+
+def _check_shapes(o, d, r, k, r_min, r_max) -> None:
+    if jnp.ndim(o) < 1 or jnp.shape(o)[-1] not in (2, 3):
+        raise ValueError(f"origins must have shape [*batch, 2 or 3], got {jnp.shape(o)}")
+    if jnp.shape(d) != jnp.shape(o):
+        raise ValueError(
+            f"directions must have the shape of origins {jnp.shape(o)}, got {jnp.shape(d)}"
+        )
+    if jnp.shape(r) != jnp.shape(o)[:-1]:
+        raise ValueError(f"ranges must have shape {jnp.shape(o)[:-1]}, got {jnp.shape(r)}")
+    if jnp.shape(k) != jnp.shape(r):
+        raise ValueError(f"kind must have shape {jnp.shape(r)}, got {jnp.shape(k)}")
+    if jnp.shape(r_min) != () or jnp.shape(r_max) != ():
+        raise ValueError("r_min and r_max must be scalars")
 
 
 class RayBatch(eqx.Module):
     """A batch of lidar rays with their measurement kind.
+
+    Construction validates the values (``ValueError`` naming the field when they are
+    concrete, ``eqx.error_if`` when traced under ``jit``): ``origins`` and ``directions``
+    finite; ``ranges`` not NaN, not negative, ``+inf`` only for SUP rays; ``kind`` one of
+    HIT/SUB/SUP; ``r_min`` finite and ``>= 0``; ``r_max >= r_min`` (``inf`` allowed). A zero
+    direction is allowed (the ray tracers treat it as a zero-length ray). Concrete fields
+    are stored as given, traced ones as the checked arrays.
 
     Attributes:
         origins: ``[*batch d]`` ray start points in the world frame (m), ``d`` = 2 or 3.
@@ -93,18 +174,36 @@ class RayBatch(eqx.Module):
     r_min: Float[Array, ""]
     r_max: Float[Array, ""]
 
-    def __check_init__(self):
-        o, d, r, k = self.origins, self.directions, self.ranges, self.kind
-        if o.ndim < 1 or o.shape[-1] not in (2, 3):
-            raise ValueError(f"origins must have shape [*batch, 2 or 3], got {o.shape}")
-        if d.shape != o.shape:
-            raise ValueError(f"directions must have the shape of origins {o.shape}, got {d.shape}")
-        if r.shape != o.shape[:-1]:
-            raise ValueError(f"ranges must have shape {o.shape[:-1]}, got {r.shape}")
-        if k.shape != r.shape:
-            raise ValueError(f"kind must have shape {r.shape}, got {k.shape}")
-        if jnp.shape(self.r_min) != () or jnp.shape(self.r_max) != ():
-            raise ValueError("r_min and r_max must be scalars")
+    def __init__(self, origins, directions, ranges, kind, r_min, r_max):
+        origins, directions, ranges, kind = (
+            x if hasattr(x, "shape") else jnp.asarray(x)
+            for x in (origins, directions, ranges, kind)
+        )
+        _check_shapes(origins, directions, ranges, kind, r_min, r_max)
+        self.origins = _reject(
+            origins, lambda xp, a: ~xp.isfinite(a), "origins must be finite (NaN or inf pose?)"
+        )
+        self.directions = _reject(
+            directions,
+            lambda xp, a: ~xp.isfinite(a),
+            "directions must be finite (NaN or inf heading/azimuth?)",
+        )
+        self.kind = _reject(
+            kind,
+            lambda xp, a: (a != HIT) & (a != SUB) & (a != SUP),
+            f"kind must be HIT ({HIT}), SUB ({SUB}) or SUP ({SUP})",
+        )
+        self.ranges = _check_ranges(ranges, kind, "ranges")
+        self.r_min, self.r_max = _check_limit_values(r_min, r_max, strict=False)
+
+    @classmethod
+    def _trusted(cls, origins, directions, ranges, kind, r_min, r_max) -> RayBatch:
+        """A batch from fields already validated (by a builder or an existing batch): shapes
+        are checked, values are not checked again. Same mechanism as pytree unflattening."""
+        _check_shapes(origins, directions, ranges, kind, r_min, r_max)
+        return jax.tree.unflatten(
+            _raybatch_treedef(), [origins, directions, ranges, kind, r_min, r_max]
+        )
 
     @property
     def dim(self) -> int:
@@ -124,7 +223,7 @@ class RayBatch(eqx.Module):
     def flatten(self) -> RayBatch:
         """The same rays with the batch axes flattened to ``[n]`` (row-major)."""
         d = self.dim
-        return RayBatch(
+        return RayBatch._trusted(
             origins=self.origins.reshape(-1, d),
             directions=self.directions.reshape(-1, d),
             ranges=self.ranges.reshape(-1),
@@ -149,30 +248,76 @@ class RayBatch(eqx.Module):
         return {name: int((k == code).sum()) for code, name in KIND_NAMES.items()}
 
 
-def classify(ranges_m: Float[Array, "*batch"], r_min, r_max) -> Int[Array, "*batch"]:
-    """Measurement kind per Eq. (7.14): SUB below ``r_min``, SUP at or beyond ``r_max``.
+@functools.cache
+def _raybatch_treedef():
+    z = np.zeros((1, 2))
+    return jax.tree.structure(RayBatch(z, z, np.zeros(1), np.zeros(1, np.int32), 0.0, 1.0))
 
-    Args:
-        ranges_m: ``[*batch]`` raw range readings (m).
-        r_min: minimum range (m).
-        r_max: maximum usable range (m); readings ``>= r_max`` are no-returns.
 
-    Returns:
-        ``[*batch]`` int32 kinds.
-    """
-    ranges_m = jnp.asarray(ranges_m)
+def _kind_of(ranges_m, r_min, r_max):
     kind = jnp.where(ranges_m < r_min, SUB, HIT)
     kind = jnp.where(ranges_m >= r_max, SUP, kind)
     return kind.astype(jnp.int32)
 
 
-def _check_limits(r_min, r_max) -> tuple[Array, Array]:
-    if is_concrete(r_min) and is_concrete(r_max):
-        lo, hi = float(r_min), float(r_max)
+def classify(ranges_m: Float[Array, "*batch"], r_min, r_max) -> Int[Array, "*batch"]:
+    """Measurement kind per Eq. (7.14): SUB below ``r_min``, SUP at or beyond ``r_max``.
+
+    A NaN reading has no kind (the comparisons would silently call it a HIT), so NaN and
+    negative readings are rejected, as are bad limits: ``ValueError`` when concrete,
+    ``eqx.error_if`` when traced. ``+inf`` (no return) is SUP.
+
+    Args:
+        ranges_m: ``[*batch]`` raw range readings (m), ``>= 0`` or ``+inf``.
+        r_min: minimum range (m), finite and ``>= 0``.
+        r_max: maximum usable range (m), ``>= r_min``; readings ``>= r_max`` are no-returns.
+
+    Returns:
+        ``[*batch]`` int32 kinds.
+
+    Raises:
+        ValueError: concrete NaN/negative readings or bad limits.
+    """
+    ranges_m = _reject(
+        ranges_m, lambda xp, r: xp.isnan(r) | (r < 0), "ranges_m must be >= 0 and not NaN"
+    )
+    lo, hi = _check_limits(r_min, r_max, strict=False)
+    return _kind_of(jnp.asarray(ranges_m), lo, hi)
+
+
+def _check_limit_values(r_min, r_max, *, strict: bool = True):
+    """``r_min`` finite and >= 0, ``r_max > r_min`` (``>=`` unless ``strict``; not NaN,
+    ``inf`` allowed). Concrete values raise ``ValueError`` and are returned unchanged;
+    traced ones carry ``eqx.error_if``."""
+    if jnp.shape(r_min) != () or jnp.shape(r_max) != ():
+        raise ValueError(
+            f"r_min and r_max must be scalars, got shapes {jnp.shape(r_min)}, {jnp.shape(r_max)}"
+        )
+    relation = "larger than" if strict else "at least"
+    lo_c, hi_c = is_concrete(r_min), is_concrete(r_max)
+    if lo_c:
+        lo = float(r_min)
         if not (np.isfinite(lo) and lo >= 0):
             raise ValueError(f"r_min must be finite and >= 0, got {lo}")
-        if not (hi > lo):
-            raise ValueError(f"r_max must be larger than r_min={lo}, got {hi}")
+    else:
+        r_min = eqx.error_if(
+            r_min, ~(jnp.isfinite(r_min) & (r_min >= 0)), "r_min must be finite and >= 0"
+        )
+    if lo_c and hi_c:
+        hi = float(r_max)
+        if not (hi > lo if strict else hi >= lo):
+            raise ValueError(f"r_max must be {relation} r_min={lo}, got {hi}")
+    else:
+        ok = (r_max > r_min) if strict else (r_max >= r_min)
+        r_max = eqx.error_if(
+            jnp.asarray(r_max), ~ok, f"r_max must be {relation} r_min (and not NaN)"
+        )
+    return r_min, r_max
+
+
+def _check_limits(r_min, r_max, *, strict: bool = True) -> tuple[Array, Array]:
+    """:func:`_check_limit_values`, returned as arrays of the default float dtype."""
+    r_min, r_max = _check_limit_values(r_min, r_max, strict=strict)
     dtype = jnp.result_type(float)
     return jnp.asarray(r_min, dtype), jnp.asarray(r_max, dtype)
 
@@ -188,17 +333,21 @@ def from_scan(
 
     Args:
         T_world_sensor: sensor pose(s), ``jaxlie.SE2`` with batch axes ``[*scans]``
-            broadcastable against ``ranges_m.shape[:-1]``.
-        azimuths_rad: ``[b]`` beam angles relative to the sensor heading (rad).
-        ranges_m: ``[*scans b]`` raw readings (m); must be finite and non-negative.
-        r_min: minimum range (m); readings below are SUB.
-        r_max: maximum usable range (m); readings at or beyond are SUP (no return).
+            broadcastable against ``ranges_m.shape[:-1]``; finite.
+        azimuths_rad: ``[b]`` beam angles relative to the sensor heading (rad); finite.
+        ranges_m: ``[*scans b]`` raw readings (m); must be finite and non-negative (a NaN
+            reading is an error, never a HIT; give no-returns as a reading ``>= r_max``).
+        r_min: minimum range (m), finite and ``>= 0``; readings below are SUB.
+        r_max: maximum usable range (m), ``> r_min``; readings at or beyond are SUP (no
+            return).
 
     Returns:
         A :class:`RayBatch` of shape ``[*scans b]`` with 2-D origins and unit directions.
 
     Raises:
-        ValueError: wrong types/shapes, NaN/negative ranges, or ``r_max <= r_min``.
+        ValueError: wrong types/shapes; with concrete values also a NaN/inf pose or
+            azimuth, NaN/inf/negative ranges, ``r_min < 0`` or ``r_max <= r_min``. Traced
+            values are checked with ``eqx.error_if`` (the message names the argument).
     """
     if not isinstance(T_world_sensor, jaxlie.SE2):
         raise ValueError(
@@ -207,13 +356,16 @@ def from_scan(
     az = jnp.asarray(azimuths_rad, dtype=jnp.result_type(float))
     if az.ndim != 1 or az.shape[0] == 0:
         raise ValueError(f"azimuths_rad must have shape [b] with b > 0, got {az.shape}")
-    ranges = check_finite_nonnegative(ranges_m, "ranges_m").astype(az.dtype)
+    ranges = jnp.asarray(ranges_m)
     if ranges.ndim < 1 or ranges.shape[-1] != az.shape[0]:
         raise ValueError(
             f"ranges_m must have shape [*scans, {az.shape[0]}] to match azimuths_rad, "
             f"got {ranges.shape}"
         )
     batch = _scan_batch(T_world_sensor, ranges.shape[:-1], "ranges_m")
+    az = check_finite(az, "azimuths_rad")
+    ranges = check_finite_nonnegative(ranges, "ranges_m").astype(az.dtype)
+    T_world_sensor = check_pose(T_world_sensor, "T_world_sensor")
     lo, hi = _check_limits(r_min, r_max)
     b = az.shape[0]
     xy = T_world_sensor.translation().astype(az.dtype)  # [*P 2]
@@ -224,11 +376,11 @@ def from_scan(
     origins = jnp.broadcast_to(xy[..., None, :], (*batch, b, 2))
     dirs = jnp.broadcast_to(dirs, (*batch, b, 2))
     ranges = jnp.broadcast_to(ranges, (*batch, b))
-    return RayBatch(
+    return RayBatch._trusted(
         origins=origins,
         directions=dirs,
         ranges=ranges,
-        kind=classify(ranges, lo, hi),
+        kind=_kind_of(ranges, lo, hi),
         r_min=lo,
         r_max=hi,
     )
@@ -247,33 +399,32 @@ def from_points(
 
     Args:
         T_world_sensor: sensor pose(s), ``jaxlie.SE3`` with batch axes ``[*scans]``
-            broadcastable against ``points_xyz.shape[:-2]``.
+            broadcastable against ``points_xyz.shape[:-2]``; finite.
         points_xyz: ``[*scans n 3]`` measured points in the sensor frame (m); no NaNs
             (drop no-return points of organized clouds first, or give them as SUP rays by
             building a :class:`RayBatch` directly).
-        r_min: minimum range (m).
-        r_max: maximum usable range (m).
+        r_min: minimum range (m), finite and ``>= 0``.
+        r_max: maximum usable range (m), ``> r_min``.
 
     Returns:
         A :class:`RayBatch` of shape ``[*scans n]``.
+
+    Raises:
+        ValueError: wrong types/shapes; with concrete values also a NaN/inf pose or
+            point, or bad limits (traced values: ``eqx.error_if``).
     """
     if not isinstance(T_world_sensor, jaxlie.SE3):
         raise ValueError(
             f"T_world_sensor must be a jaxlie.SE3, got {type(T_world_sensor).__name__}"
         )
-    if is_concrete(points_xyz):
-        pts_np = np.asarray(points_xyz)
-        if not np.all(np.isfinite(pts_np)):
-            raise ValueError(
-                f"points_xyz contains {int((~np.isfinite(pts_np)).sum())} NaN/inf values"
-            )
-        pts = jnp.asarray(pts_np, dtype=jnp.result_type(float))
-    else:
-        pts = jnp.asarray(points_xyz, dtype=jnp.result_type(float))
-        pts = eqx.error_if(pts, ~jnp.isfinite(pts), "points_xyz contains NaN/inf values")
+    pts = jnp.asarray(points_xyz, dtype=jnp.result_type(float))
     if pts.ndim < 2 or pts.shape[-1] != 3:
         raise ValueError(f"points_xyz must have shape [*scans, n, 3], got {pts.shape}")
     batch = _scan_batch(T_world_sensor, pts.shape[:-2], "points_xyz")
+    pts = jnp.asarray(
+        _reject(pts, lambda xp, a: ~xp.isfinite(a), "points_xyz contains NaN/inf values")
+    )
+    T_world_sensor = check_pose(T_world_sensor, "T_world_sensor")
     lo, hi = _check_limits(r_min, r_max)
     rng = jnp.linalg.norm(pts, axis=-1)  # [*S n]
     safe = jnp.where(rng > 0, rng, 1.0)
@@ -284,7 +435,8 @@ def from_points(
 
 
 def _sensor_rays(T_world_sensor: jaxlie.SE3, unit, rng, lo, hi, batch) -> RayBatch:
-    """Rays from sensor-frame unit directions ``[*S n 3]`` and ranges ``[*S n]``."""
+    """Rays from sensor-frame unit directions ``[*S n 3]`` and ranges ``[*S n]`` (all
+    already validated)."""
     n = rng.shape[-1]
     R = T_world_sensor.rotation().as_matrix().astype(rng.dtype)  # [*P 3 3]
     dirs = jnp.einsum("...ij,...nj->...ni", R, unit)
@@ -292,8 +444,13 @@ def _sensor_rays(T_world_sensor: jaxlie.SE3, unit, rng, lo, hi, batch) -> RayBat
     origins = jnp.broadcast_to(t[..., None, :], (*batch, n, 3))
     dirs = jnp.broadcast_to(dirs, (*batch, n, 3))
     rng = jnp.broadcast_to(rng, (*batch, n))
-    return RayBatch(
-        origins=origins, directions=dirs, ranges=rng, kind=classify(rng, lo, hi), r_min=lo, r_max=hi
+    return RayBatch._trusted(
+        origins=origins,
+        directions=dirs,
+        ranges=rng,
+        kind=_kind_of(rng, lo, hi),
+        r_min=lo,
+        r_max=hi,
     )
 
 
@@ -310,15 +467,21 @@ def from_spinning_scan(
     becomes a SUP ray (free space up to ``r_max``, stored with range ``r_max``).
 
     Args:
-        T_world_sensor: sensor pose(s), ``jaxlie.SE3`` with batch axes ``[*scans]``.
-        directions: ``[n 3]`` beam directions in the sensor frame (normalised here).
+        T_world_sensor: sensor pose(s), ``jaxlie.SE3`` with batch axes ``[*scans]``; finite.
+        directions: ``[n 3]`` beam directions in the sensor frame (normalised here);
+            finite and non-zero.
         ranges_m: ``[*scans n]`` measured ranges (m); ``+inf`` = no return; NaN and
-            negative values are rejected.
-        r_min: minimum range (m); shorter readings are SUB rays.
-        r_max: maximum usable range (m), finite when any range is ``+inf``.
+            negative values are rejected (a NaN is never read as a no-return or a HIT).
+        r_min: minimum range (m), finite and ``>= 0``; shorter readings are SUB rays.
+        r_max: maximum usable range (m), ``> r_min``; finite when any range is ``+inf``.
 
     Returns:
         A :class:`RayBatch` of shape ``[*scans n]``.
+
+    Raises:
+        ValueError: wrong types/shapes; with concrete values also a NaN/inf pose,
+            non-finite or zero directions, NaN/negative ranges, ``+inf`` ranges with an
+            infinite ``r_max``, or bad limits (traced values: ``eqx.error_if``).
     """
     if not isinstance(T_world_sensor, jaxlie.SE3):
         raise ValueError(
@@ -327,20 +490,36 @@ def from_spinning_scan(
     d = jnp.asarray(directions, dtype=jnp.result_type(float))
     if d.ndim != 2 or d.shape[1] != 3:
         raise ValueError(f"directions must have shape [n, 3], got {d.shape}")
-    norm = jnp.linalg.norm(d, axis=-1)
-    if is_concrete(norm) and not bool(jnp.all(jnp.isfinite(norm) & (norm > 0))):
-        raise ValueError("directions must be finite and non-zero")
-    d = d / norm[:, None]
-    lo, hi = _check_limits(r_min, r_max)
-    if is_concrete(ranges_m):
-        r_np = np.asarray(ranges_m, dtype=float)
-        if np.any(np.isnan(r_np)) or np.any(r_np < 0):
-            raise ValueError("ranges_m must be >= 0 or +inf (no return); found NaN/negative")
-        if np.any(np.isinf(r_np)) and not np.isfinite(float(hi)):
-            raise ValueError("ranges_m has no-return (+inf) beams: give a finite r_max")
     r = jnp.asarray(ranges_m, dtype=d.dtype)
     if r.shape[-1:] != (d.shape[0],):
         raise ValueError(f"ranges_m must have shape [*scans, {d.shape[0]}], got {r.shape}")
     batch = _scan_batch(T_world_sensor, r.shape[:-1], "ranges_m")
+    d = jnp.asarray(
+        _reject(d, lambda xp, a: ~xp.isfinite(a), "directions must be finite and non-zero")
+    )
+    norm = _reject(
+        jnp.linalg.norm(d, axis=-1),
+        lambda xp, a: ~(a > 0),
+        "directions must be finite and non-zero",
+    )
+    d = d / norm[:, None]
+    T_world_sensor = check_pose(T_world_sensor, "T_world_sensor")
+    lo, hi = _check_limits(r_min, r_max)
+    r = jnp.asarray(
+        _reject(
+            r,
+            lambda xp, a: xp.isnan(a) | (a < 0),
+            "ranges_m must be >= 0 or +inf (no return); found NaN/negative",
+        )
+    )
+    if is_concrete(r) and is_concrete(hi):
+        if bool(jnp.any(jnp.isinf(r))) and not np.isfinite(float(hi)):
+            raise ValueError("ranges_m has no-return (+inf) beams: give a finite r_max")
+    else:
+        r = eqx.error_if(
+            r,
+            jnp.isinf(r) & ~jnp.isfinite(hi),
+            "ranges_m has no-return (+inf) beams: give a finite r_max",
+        )
     r = jnp.where(jnp.isinf(r), hi.astype(d.dtype), r)
     return _sensor_rays(T_world_sensor, d, r, lo, hi, batch)

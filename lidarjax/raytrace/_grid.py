@@ -315,6 +315,9 @@ def traverse(
         )
     if jnp.shape(length) != ():
         raise ValueError(f"length must be a scalar, got shape {jnp.shape(length)}")
+    origin, direction, length = check_rays(
+        spec, origin, jnp.asarray(direction), jnp.asarray(length), name="traverse"
+    )
     ray, state = _setup(spec, origin, direction, length)
 
     def body(s, _):

@@ -21,6 +21,10 @@
 // naming the first bad ray). Every loop over cells is bounded by sum(shape) + D steps; a
 // walk still running there (impossible with finite input) is an error too.
 
+#include <pthread.h>
+#include <sched.h>
+#include <unistd.h>
+
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
@@ -50,8 +54,10 @@ struct Walk {
   T d[D];
   T t_first[D];
   T t_scale[D];
+  T t_axis[D];
   int32_t c0[D];
   int32_t cell[D];
+  int64_t flat;
   bool moving[D];
   bool up[D];
   T t_start, t_end, tol, t;
@@ -125,42 +131,66 @@ inline void setup(const Grid<T, D>& g, const T* o, const T* din, T length, Walk<
     const T scale = g.res / d_safe[k];
     w.t_scale[k] = w.moving[k] ? std::min(std::max(scale, -big), big) : T(0);
   }
+  w.flat = 0;
+  for (int k = 0; k < D; ++k) {
+    w.t_axis[k] = w.t_first[k];  // + (cell - c0) * t_scale with cell == c0
+    w.flat += int64_t(w.cell[k]) * g.stride[k];
+  }
   w.t_start = t0;
   w.t_end = t1;
   w.t = t0;
   w.active = active;
 }
 
-// One step: returns the cell walked (in `cell_out`), its segment length, whether the
-// segment is valid and whether it is the ray's last one; advances the walk.
-template <typename T, int D>
-inline void step(const Grid<T, D>& g, Walk<T, D>& w, int64_t& flat_out, int32_t* cell_out,
-                 T& seg_out, bool& valid_out, bool& last_out) {
-  T t_axis[D];
-  T t_min = std::numeric_limits<T>::infinity();
+// The whole walk of one ray set up in `w`: visit(flat, cell, seg, valid, last) for each
+// step (the same sequence as repeated step() calls), with the walk state in local
+// variables so that the visitor's stores cannot alias it (keeps it in registers).
+// Returns true if the walk was still active at the grid's cell bound (an overrun).
+template <typename T, int D, typename F>
+inline bool walk_ray(const Grid<T, D>& g, const Walk<T, D>& w, F&& visit) {
+  T t_axis[D], t_first[D], t_scale[D];
+  int32_t cell[D], c0[D], prev[D];
+  int64_t dflat[D];
+  bool moving[D];
   for (int k = 0; k < D; ++k) {
-    t_axis[k] = w.t_first[k] + T(w.cell[k] - w.c0[k]) * w.t_scale[k];
-    t_min = k == 0 ? t_axis[0] : std::min(t_min, t_axis[k]);
+    t_axis[k] = w.t_axis[k];
+    t_first[k] = w.t_first[k];
+    t_scale[k] = w.t_scale[k];
+    cell[k] = w.cell[k];
+    c0[k] = w.c0[k];
+    moving[k] = w.moving[k];
+    dflat[k] = w.up[k] ? g.stride[k] : -g.stride[k];
   }
-  const bool last = t_min >= w.t_end - w.tol;
-  const T t_stop = last ? w.t_end : t_min;
-  T seg = std::max(t_stop - w.t, T(0));
-  const bool valid = w.active && ((seg > w.tol) || last);
-  if (!valid) seg = T(0);
-  int64_t flat = 0;
-  bool inside = true;
-  for (int k = 0; k < D; ++k) {
-    cell_out[k] = w.cell[k];
-    flat += int64_t(w.cell[k]) * g.stride[k];
-    if (w.moving[k] && t_axis[k] <= t_min + w.tol) w.cell[k] += w.up[k] ? 1 : -1;
-    inside = inside && (w.cell[k] >= 0) && (w.cell[k] < g.n[k]);
+  int64_t flat = w.flat;
+  T t = w.t;
+  const T t_end = w.t_end, tol = w.tol;
+  bool active = w.active;
+  for (int64_t it = 0; it < g.bound && active; ++it) {
+    T t_min = t_axis[0];
+    for (int k = 1; k < D; ++k) t_min = std::min(t_min, t_axis[k]);
+    const bool last = t_min >= t_end - tol;
+    const T t_stop = last ? t_end : t_min;
+    T seg = std::max(t_stop - t, T(0));
+    const bool valid = (seg > tol) || last;  // active here
+    if (!valid) seg = T(0);
+    const int64_t here = flat;
+    bool inside = true;
+    const T lim = t_min + tol;
+    for (int k = 0; k < D; ++k) {
+      prev[k] = cell[k];
+      if (moving[k] && t_axis[k] <= lim) {
+        const int32_t c = cell[k] + (dflat[k] > 0 ? 1 : -1);
+        cell[k] = c;
+        flat += dflat[k];
+        t_axis[k] = t_first[k] + T(c - c0[k]) * t_scale[k];
+        inside = inside && (c >= 0) && (c < g.n[k]);
+      }
+    }
+    t = t_stop;
+    active = !last && inside;
+    visit(here, prev, seg, valid, valid && (last || !inside));
   }
-  if (w.active) w.t = t_stop;
-  w.active = w.active && !last && inside;
-  flat_out = flat;
-  seg_out = seg;
-  valid_out = valid;
-  last_out = valid && (last || !inside);
+  return active;
 }
 
 template <typename T, int D>
@@ -191,10 +221,21 @@ inline int64_t clamp_threads(int64_t threads, int64_t n_items, int64_t min_per_t
   return std::max<int64_t>(1, std::min<int64_t>(threads, 256));
 }
 
+// The process's CPU set (the main thread's affinity). XLA runs a custom call on one of its
+// worker threads, which may be pinned to a single core; threads started from it inherit
+// that pin, so each worker is given the process's set instead.
+inline bool process_cpus(cpu_set_t& set) {
+  CPU_ZERO(&set);
+  return sched_getaffinity(getpid(), sizeof(set), &set) == 0;
+}
+
 // Run fn(thread_index, begin, end) over [0, n) in interleaved blocks on `threads` threads.
 template <typename Fn>
 void parallel_blocks(int64_t n, int64_t threads, int64_t block, Fn fn) {
+  cpu_set_t cpus;
+  const bool have_cpus = threads > 1 && process_cpus(cpus);
   auto worker = [&](int64_t t) {
+    if (t > 0 && have_cpus) pthread_setaffinity_np(pthread_self(), sizeof(cpus), &cpus);
     for (int64_t b = t * block; b < n; b += threads * block) fn(t, b, std::min(n, b + block));
   };
   if (threads == 1) {
@@ -283,7 +324,6 @@ ffi::Error Accumulate(ffi::Buffer<DT> spec_lo, ffi::Buffer<DT> spec_res, ffi::Bu
     int32_t* h = t == 0 ? H : h_priv[t - 1].data();
     int32_t* v = t == 0 ? V : v_priv[t - 1].data();
     Walk<T, D> w;
-    int32_t cell[D];
     for (int64_t i = b; i < e; ++i) {
       const int32_t k = kind[i];
       bool is_hit;
@@ -301,21 +341,18 @@ ffi::Error Accumulate(ffi::Buffer<DT> spec_lo, ffi::Buffer<DT> spec_res, ffi::Bu
       const bool ends_inside = is_hit && w.active && (w.t_end >= len - w.tol);
       bool ended = false;
       int64_t last_flat = 0;
-      for (int64_t it = 0; it < g.bound && w.active; ++it) {
-        int64_t flat;
-        T seg;
-        bool valid, last;
-        step<T, D>(g, w, flat, cell, seg, valid, last);
-        if (valid) {
-          r[flat] += seg;
-          v[flat] += 1;
-          if (last) {
-            last_flat = flat;
-            ended = true;
-          }
-        }
-      }
-      if (w.active) overrun[t] = 1;
+      const bool over = walk_ray<T, D>(
+          g, w, [&](int64_t flat, const int32_t*, T seg, bool valid, bool last) {
+            if (valid) {
+              r[flat] += seg;
+              v[flat] += 1;
+              if (last) {
+                last_flat = flat;
+                ended = true;
+              }
+            }
+          });
+      if (over) overrun[t] = 1;
       if (ends_inside && ended) h[last_flat] += 1;
     }
   });
@@ -401,30 +438,26 @@ ffi::Error Fold(ffi::Buffer<DT> spec_lo, ffi::Buffer<DT> spec_res, ffi::Buffer<D
   std::vector<char> overrun(threads, 0);
   parallel_blocks(n, threads, kBlock, [&](int64_t t, int64_t b, int64_t e) {
     Walk<T, D> w;
-    int32_t cell[D];
     for (int64_t i = b; i < e; ++i) {
       setup<T, D>(g, o + i * D, dir + i * D, len[i], w);
       T acc = T(0), llen = T(0), glen = T(0);
       bool anyv = false;
       int32_t lc[D];
       for (int k = 0; k < D; ++k) lc[k] = w.cell[k];
-      for (int64_t it = 0; it < g.bound && w.active; ++it) {
-        int64_t flat;
-        T seg;
-        bool valid, last;
-        step<T, D>(g, w, flat, cell, seg, valid, last);
-        if (valid) {
-          if (!last) {
-            acc = acc + cell_term<T, MODE>(tab, nc, flat, seg);
-          } else {
-            for (int k = 0; k < D; ++k) lc[k] = cell[k];
-            llen = seg;
-          }
-          anyv = true;
-        }
-        glen = glen + seg;
-      }
-      if (w.active) overrun[t] = 1;
+      const bool over = walk_ray<T, D>(
+          g, w, [&](int64_t flat, const int32_t* cell, T seg, bool valid, bool last) {
+            if (valid) {
+              if (!last) {
+                acc = acc + cell_term<T, MODE>(tab, nc, flat, seg);
+              } else {
+                for (int k = 0; k < D; ++k) lc[k] = cell[k];
+                llen = seg;
+              }
+              anyv = true;
+            }
+            glen = glen + seg;
+          });
+      if (over) overrun[t] = 1;
       body[i] = acc;
       for (int k = 0; k < D; ++k) last_cell[i * D + k] = lc[k];
       last_len[i] = llen;

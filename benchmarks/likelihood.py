@@ -21,12 +21,19 @@ forward models (cell walk with exact per-cell lengths, then the model's sum), wr
 independently of the library. It is timed on a subset of the same rays in the same run and
 its rate is extrapolated per ray; the subset is also compared against the JAX values.
 
-Timings: one warm-up call (compilation, reported separately), then the median of
-``repeats`` calls (at least 5 for the fast path) with ``jax.block_until_ready``.
+Backends of the fast path, all in the same run on the same rays: the native C++ fold
+(``backend="native"``, ``threads`` 1 and 2) and the pure-JAX fold (``backend="jax"``).
+Ratios ``native/JAX`` (fast JAX path) and ``native/NumPy`` are throughput ratios (the other
+path's time per ray divided by the native one's).
 
-Run with ``python benchmarks/likelihood.py [--quick] [--out PATH] [--chunk-size N]``. Results
-go to ``--out`` (default ``benchmarks/results/likelihood.json``; write quick or loaded runs
-elsewhere) and a Markdown table is printed.
+Timings: one warm-up call (compilation, reported separately), then the median (and best) of
+``repeats`` calls (at least 7 for the fast paths) with ``jax.block_until_ready``. Every timed
+block records the 1-minute load average right before it and is rerun after waiting for the
+load to drop when it was above 0.5 (:mod:`benchmarks._harness`).
+
+Run with ``python benchmarks/likelihood.py [--quick] [--out PATH] [--chunk-size N]
+[--wait-budget S]``. Results go to ``--out`` (default ``benchmarks/results/likelihood.json``)
+and a Markdown table is printed.
 """
 
 from __future__ import annotations
@@ -35,7 +42,6 @@ import argparse
 import json
 import math
 import os
-import statistics
 import sys
 import time
 from pathlib import Path
@@ -48,6 +54,7 @@ import jax
 import jax.numpy as jnp
 import jaxlie
 import numpy as np
+from _harness import add_policy_args, native_info, policy_from_args, ratio, time_calls, warm
 from _machine import machine_info
 
 from lidarjax import maps
@@ -167,13 +174,18 @@ def _fmp(posterior_map, max_cells, rays):
     return posterior_log_likelihood(posterior_map, rays, max_cells=max_cells)
 
 
+FAST_BACKENDS = (("jax", "jax", None), ("native_1t", "native", 1), ("native_2t", "native", 2))
+
+
 @eqx.filter_jit
-def _fast_at_poses(model, az, ranges, poses, r_max, chunk_size):
+def _fast_at_poses(model, az, ranges, poses, r_max, chunk_size, backend="auto", threads=None):
     """``[p b]`` log-likelihoods of one scan at ``[p 3]`` poses via the fast forward path."""
     poses = jnp.asarray(poses, az.dtype)
     T = jaxlie.SE2.from_xy_theta(poses[:, 0], poses[:, 1], poses[:, 2])
     rays = from_scan(T, az, jnp.broadcast_to(ranges, (poses.shape[0], az.shape[0])), 0.0, r_max)
-    return batch_log_likelihood(model, rays, chunk_size=chunk_size)
+    return batch_log_likelihood(
+        model, rays, chunk_size=chunk_size, backend=backend, threads=threads
+    )
 
 
 def _compare(got, ref) -> dict:
@@ -193,27 +205,19 @@ def _compare(got, ref) -> dict:
     }
 
 
-def time_jax(fn, repeats: int) -> tuple[float, float, np.ndarray]:
-    t0 = time.perf_counter()
-    out = jax.block_until_ready(fn())
-    first = time.perf_counter() - t0
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        out = jax.block_until_ready(fn())
-        times.append(time.perf_counter() - t0)
-    return first, statistics.median(times), np.asarray(out)
-
-
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="fewer poses, repeats, reference rays")
     ap.add_argument("--out", type=Path, default=DEFAULT_OUT)
     ap.add_argument("--chunk-size", type=int, default=2048, help="batch_log_likelihood chunk_size")
+    add_policy_args(ap)
     args = ap.parse_args(argv)
+    policy = policy_from_args(args)
+    t_start = time.perf_counter()
+    machine = machine_info(native=native_info())
     n_poses = 60 if args.quick else 300
     repeats = 1 if args.quick else 3
-    fast_repeats = max(repeats, 5)  # fast calls are cheap; more samples, less noise
+    fast_repeats = max(repeats, 7)  # fast calls are cheap; more samples, less noise
     n_ref = 150 if args.quick else 600
     res = 0.1
 
@@ -230,7 +234,7 @@ def main(argv=None) -> dict:
     ends = np.asarray(rays.endpoints())[np.asarray(rays.kind) == HIT]
     spec = GridSpec.covering(np.concatenate([ends, P[:, :2]]), res, margin=3.0)
     t0 = time.perf_counter()
-    stats = jax.block_until_ready(accumulate(spec, rays))
+    stats = jax.block_until_ready(accumulate(spec, rays, backend="jax"))
     t_map = time.perf_counter() - t0
     dm, rm = maps.decay_rate_map(stats), maps.reflection_map(stats)
     em = maps.endpoint_map(stats, sigma_m=0.1)
@@ -254,41 +258,71 @@ def main(argv=None) -> dict:
     ranges_j = jnp.asarray(ranges, az_j.dtype)
     poses_j = jnp.asarray(poses, az_j.dtype)
 
-    results, jax_out = {}, {}
+    results, jax_out, fast_outs = {}, {}, {}
     for name, (m, fm) in models.items():
 
         def call(m=m):
             return ray_log_likelihoods_at_poses(m, az, ranges, poses, r_max=r_max)
 
-        def call_fast(fm=fm):
-            return _fast_at_poses(fm, az_j, ranges_j, poses_j, r_max, args.chunk_size)
-
-        first, med, out = time_jax(call, repeats)
+        out, first = warm(call)
+        out = np.asarray(out)
+        scan_t = policy.measure(f"{name} differentiable", lambda: time_calls(call, repeats))
         jax_out[name] = out
+        med = scan_t["median_s"]
         print(f"{name}: {n_rays / med:.3g} rays*poses/s (first call {first:.1f} s)", flush=True)
-        f_first, f_med, f_out = time_jax(call_fast, fast_repeats)
-        check = _compare(f_out, out)
-        results[name] = {
+        entry = {
             "first_call_s": first,
             "median_s": med,
             "rays_x_poses_per_s": n_rays / med,
-            "fast_first_call_s": f_first,
-            "fast_median_s": f_med,
-            "fast_rays_per_s": n_rays / f_med,
-            "fast_speedup_vs_scan": med / f_med,
-            "fast_speedup_vs_numpy": None,  # set below where a NumPy reference exists
-            "fast_max_abs_diff": check["max_abs_diff"],
-            "fast_max_rel_diff": check["max_rel_diff"],
-            "fast_n_compared": check["n_compared"],
-            "fast_n_finite_mismatch": check["n_finite_mismatch"],
-            "fast_n_nonfinite_mismatch": check["n_mismatch_both_nonfinite"],
+            "differentiable": scan_t,
+            "fast": {},
         }
-        print(
-            f"{name} fast: {n_rays / f_med:.3g} rays*poses/s (first call {f_first:.1f} s), "
-            f"{med / f_med:.1f}x vs scan, max abs diff {check['max_abs_diff']:.2e}, "
-            f"{check['n_finite_mismatch']} finite mismatches",
-            flush=True,
-        )
+        fast_out = {}
+        for label, backend, threads in FAST_BACKENDS:
+
+            def call_fast(fm=fm, backend=backend, threads=threads):
+                return _fast_at_poses(
+                    fm, az_j, ranges_j, poses_j, r_max, args.chunk_size, backend, threads
+                )
+
+            try:
+                f_out, f_first = warm(call_fast)
+            except Exception as e:  # noqa: BLE001 - recorded; the other paths still count
+                entry["fast"][label] = {"error": f"{type(e).__name__}: {e}"}
+                print(f"{name} fast {label} FAILED: {e}", flush=True)
+                continue
+            f_out = np.asarray(f_out)
+            fast_out[label] = f_out
+            t = policy.measure(
+                f"{name} fast {label}", lambda cf=call_fast: time_calls(cf, fast_repeats)
+            )
+            check = _compare(f_out, out)
+            entry["fast"][label] = {
+                "backend": backend,
+                "threads": threads,
+                "first_call_s": f_first,
+                **t,
+                "rays_per_s": n_rays / t["median_s"],
+                "m_rays_per_s": n_rays / t["median_s"] / 1e6,
+                "ns_per_ray": 1e9 * t["median_s"] / n_rays,
+                "speedup_vs_differentiable": med / t["median_s"],
+                "vs_differentiable": check,
+            }
+            print(
+                f"{name} fast {label}: {n_rays / t['median_s']:.3g} rays*poses/s (first call "
+                f"{f_first:.1f} s), {med / t['median_s']:.1f}x vs differentiable, max abs diff "
+                f"{check['max_abs_diff']:.2e}, {check['n_finite_mismatch']} finite mismatches",
+                flush=True,
+            )
+        fj = entry["fast"].get("jax", {})
+        for label in ("native_1t", "native_2t"):
+            fn = entry["fast"].get(label, {})
+            if "median_s" in fn and "median_s" in fj:
+                fn["native_over_jax"] = ratio(fj["median_s"], fn["median_s"])
+                fn["native_over_jax_best"] = ratio(fj["best_s"], fn["best_s"])
+                fn["vs_fast_jax"] = _compare(fast_out[label], fast_out["jax"])
+        results[name] = entry
+        fast_outs[name] = fast_out
 
     # NumPy per-ray reference on a random subset of the same (pose, beam) pairs.
     rates, probs = np.asarray(dm.rates, np.float64), np.asarray(rm.probs, np.float64)
@@ -301,14 +335,20 @@ def main(argv=None) -> dict:
     }
     for name, (fn, values, outside) in ref_fns.items():
         vals = np.empty(pick.size)
-        t0 = time.perf_counter()
-        for n, idx in enumerate(pick):
-            p, b = divmod(int(idx), az.size)
-            th = poses[p, 2] + az[b]
-            o = poses[p, :2]
-            d = np.array([math.cos(th), math.sin(th)])
-            vals[n] = fn(values, outside, lo, res, o, d, float(ranges[b]), int(kind[b]), r_max)
-        dt = time.perf_counter() - t0
+
+        def ref_block(fn=fn, values=values, outside=outside, vals=vals):
+            t0 = time.perf_counter()
+            for n, idx in enumerate(pick):
+                p, b = divmod(int(idx), az.size)
+                th = poses[p, 2] + az[b]
+                o = poses[p, :2]
+                d = np.array([math.cos(th), math.sin(th)])
+                vals[n] = fn(values, outside, lo, res, o, d, float(ranges[b]), int(kind[b]), r_max)
+            dt = time.perf_counter() - t0
+            return {"times_s": [dt], "median_s": dt, "best_s": dt}
+
+        timed = policy.measure(f"{name} numpy reference", ref_block)
+        dt = timed["median_s"]
         got = jax_out[name].reshape(-1)[pick].astype(np.float64)
         both = np.isfinite(vals) & np.isfinite(got)
         diff = np.abs(vals[both] - got[both])
@@ -318,18 +358,32 @@ def main(argv=None) -> dict:
             "n_rays_timed": int(pick.size),
             "seconds": dt,
             "rays_per_s": rate,
+            "ns_per_ray": 1e9 / rate,
+            "load": timed["load"],
             "speedup": results[name]["rays_x_poses_per_s"] / rate,
-            "fast_speedup": results[name]["fast_rays_per_s"] / rate,
             "max_abs_diff": float(diff.max()) if diff.size else None,
             "max_rel_diff": float(rel.max()) if rel.size else None,
             "n_finite_mismatch": int((np.isfinite(vals) != np.isfinite(got)).sum()),
             "n_large_rel_diff_gt_1e-3": int((rel > 1e-3).sum()),
         }
-        results[name]["fast_speedup_vs_numpy"] = results[name]["fast_rays_per_s"] / rate
+        for label, f_out in fast_outs[name].items():  # each fast path vs the float64 loop
+            g = f_out.reshape(-1)[pick].astype(np.float64)
+            ok = np.isfinite(vals) & np.isfinite(g)
+            rel_f = np.abs(vals[ok] - g[ok]) / np.maximum(np.abs(vals[ok]), 1.0)
+            results[name]["fast"][label]["vs_numpy_reference"] = {
+                "max_rel_diff": float(rel_f.max()) if rel_f.size else None,
+                "n_rel_diff_gt_1e-3": int((rel_f > 1e-3).sum()),
+                "n_finite_mismatch": int((np.isfinite(vals) != np.isfinite(g)).sum()),
+            }
+        for f in results[name]["fast"].values():
+            if "rays_per_s" in f:
+                f["speedup_vs_numpy"] = f["rays_per_s"] / rate
+                if f["backend"] == "native":
+                    f["native_over_numpy"] = f["rays_per_s"] / rate
         print(f"{name} numpy reference: {rate:.3g} rays/s", flush=True)
 
     report = {
-        "machine": machine_info(),
+        "machine": machine,
         "quick": args.quick,
         "setup": {
             "log": "intel",
@@ -345,41 +399,48 @@ def main(argv=None) -> dict:
             "fast_chunk_size": args.chunk_size,
             "fast_repeats": fast_repeats,
             "accumulate_s": t_map,
+            "ratio_note": "native_over_X = X's time per ray / native's (higher is faster)",
         },
         "models": results,
+        "load_policy": policy.summary(),
+        "load_average_end": list(os.getloadavg()),
+        "wall_time_s": time.perf_counter() - t_start,
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(report, indent=2))
+    args.out.write_text(json.dumps(report, indent=2) + "\n")
+
+    def cell(r, label, key, fmt):
+        v = r["fast"].get(label, {}).get(key)
+        return "-" if v is None else format(v, fmt)
+
     lines = [
         f"Intel map {spec.shape[0]}x{spec.shape[1]} cells of {res} m, r_max {r_max:.1f} m, "
         f"{n_poses} poses x {az.size} beams, {jax.default_backend()} "
-        f"({os.cpu_count()} cores), float32",
+        f"({os.cpu_count()} cores), float32; rays*poses/s, median of warm calls",
         "",
-        "| model | JAX rays*poses/s | first call (s) | NumPy loop rays/s | speedup | "
-        "max rel diff | fast rays*poses/s | fast first call (s) | fast vs scan | "
-        "fast vs NumPy | fast max abs diff |",
+        "| model | differentiable | NumPy loop | fast JAX | native 1t | native 2t | 1t/JAX "
+        "| 2t/JAX | 2t/NumPy | max abs diff 2t vs JAX | load (2t) |",
         "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for name, r in results.items():
         ref = r.get("numpy_reference")
-        ref_cols = (
-            f"{ref['rays_per_s']:.3g} | {ref['speedup']:.1f}x | {ref['max_rel_diff']:.1e}"
-            if ref
-            else "- | - | -"
-        )
-        vs_np = r["fast_speedup_vs_numpy"]
-        fdiff = r["fast_max_abs_diff"]
-        fast_cols = (
-            f"{r['fast_rays_per_s']:.3g} | {r['fast_first_call_s']:.1f} | "
-            f"{r['fast_speedup_vs_scan']:.1f}x | "
-            f"{'-' if vs_np is None else f'{vs_np:.1f}x'} | "
-            f"{'-' if fdiff is None else f'{fdiff:.1e}'}"
-        )
+        n2 = r["fast"].get("native_2t", {})
+        load = n2.get("load", {}).get("load_1min")
+        d2 = n2.get("vs_fast_jax", {}).get("max_abs_diff")
         lines.append(
-            f"| {name} | {r['rays_x_poses_per_s']:.3g} | {r['first_call_s']:.1f} | {ref_cols} | "
-            f"{fast_cols} |"
+            f"| {name} | {r['rays_x_poses_per_s']:.3g} | "
+            f"{'-' if not ref else format(ref['rays_per_s'], '.3g')} | "
+            f"{cell(r, 'jax', 'rays_per_s', '.3g')} | "
+            f"{cell(r, 'native_1t', 'rays_per_s', '.3g')} | "
+            f"{cell(r, 'native_2t', 'rays_per_s', '.3g')} | "
+            f"{cell(r, 'native_1t', 'native_over_jax', '.2f')} | "
+            f"{cell(r, 'native_2t', 'native_over_jax', '.2f')} | "
+            f"{cell(r, 'native_2t', 'native_over_numpy', '.0f')} | "
+            f"{'-' if d2 is None else format(d2, '.1e')} | "
+            f"{'-' if load is None else format(load, '.2f')} |"
         )
     print("\n".join(lines))
+    print(f"\n(wall time {report['wall_time_s']:.0f} s; JSON: {args.out})")
     return report
 
 

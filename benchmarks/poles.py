@@ -20,15 +20,26 @@ Measured:
    particle), timed on 500 particles and scaled to 5000.
 3. The simulator: seconds per simulated scan.
 
-Run with ``python benchmarks/poles.py [--quick] [--out PATH]``. Results go to
-``benchmarks/results/poles.json`` and a Markdown table is printed.
+Backends: the ray tracing (:func:`lidarjax.raytrace.accumulate`) and the whole extraction
+(``PoleConfig(backend=, threads=)``) are timed with the native C++ walk at 1 and 2 threads
+and with the pure-JAX walk in the same run, on the same rays; the poles found by each
+backend are compared. Goals (2 cores): ray tracing of one local map <= 40 ms and pole
+extraction <= 0.1 s (native). Ratios ``native/JAX`` and ``native/NumPy`` are speed ratios
+(the other path's time divided by the native one's). Every timed block records the
+1-minute load average right before it and is rerun after waiting for the load to drop when
+it was above 0.5 (:mod:`benchmarks._harness`).
+
+Run with ``python benchmarks/poles.py [--quick] [--out PATH] [--wait-budget S]``. Results go
+to ``benchmarks/results/poles.json`` and a Markdown table is printed.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
+import os
 import sys
 import time
 from pathlib import Path
@@ -65,25 +76,70 @@ from lidarjax.rays import HIT, RayBatch, from_spinning_scan  # noqa: E402
 from lidarjax.raytrace import accumulate  # noqa: E402
 
 try:  # run as a script or as a module
+    from _harness import (
+        LoadPolicy,
+        add_policy_args,
+        native_info,
+        policy_from_args,
+        ratio,
+        time_calls,
+    )
     from _machine import machine_info
     from _numpy_reference import accumulate_numpy
 except ImportError:  # pragma: no cover
+    from benchmarks._harness import (
+        LoadPolicy,
+        add_policy_args,
+        native_info,
+        policy_from_args,
+        ratio,
+        time_calls,
+    )
     from benchmarks._machine import machine_info
     from benchmarks._numpy_reference import accumulate_numpy
 
 DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "poles.json"
 PAPER_EXTRACT_S = 1.33  # per local map, quad-core PC with GPU (section 12.5.1)
 PAPER_MEASURE_S = 0.09  # measurement step with data association, 5000 particles
+GOAL_ACCUMULATE_S = 0.040  # native ray tracing of one local map, 2 cores
+GOAL_EXTRACT_S = 0.100  # native pole extraction of one local map, 2 cores
+VARIANTS = (("native_1t", "native", 1), ("native_2t", "native", 2), ("jax", "jax", None))
+_POLICY = LoadPolicy(budget_s=0.0)  # replaced in main()
 
 
-def _median_time(fn, repeats: int) -> tuple[float, object]:
+def _median_time(fn, repeats: int, label: str = "", record: dict | None = None):
+    """Warm-up call, then ``repeats`` timed calls under the load policy: ``(median, out)``.
+
+    The block's timings and load record go into ``record[label]`` when given."""
+    first_t0 = time.perf_counter()
     out = jax.block_until_ready(fn())  # warm-up / compile
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        out = jax.block_until_ready(fn())
-        times.append(time.perf_counter() - t0)
-    return float(np.median(times)), out
+    first = time.perf_counter() - first_t0
+    timed = _POLICY.measure(label or "block", lambda: time_calls(fn, repeats))
+    if record is not None:
+        record[label] = {
+            "median_s": timed["median_s"],
+            "best_s": timed["best_s"],
+            "first_call_s": first,
+            "times_s": timed["times_s"],
+            "load": timed["load"],
+        }
+    return float(timed["median_s"]), out
+
+
+def _poles_match(a, b, tol_m: float = 0.05) -> dict:
+    """Whether two pole sets agree (same count, positions within ``tol_m``)."""
+    xa, xb = np.asarray(a.xy, float), np.asarray(b.xy, float)
+    if len(xa) != len(xb):
+        return {"same_count": False, "n": [len(xa), len(xb)], "max_xy_diff_m": None}
+    if len(xa) == 0:
+        return {"same_count": True, "n": [0, 0], "max_xy_diff_m": 0.0, "match": True}
+    d = np.linalg.norm(xa[:, None] - xb[None], axis=-1).min(1)
+    return {
+        "same_count": True,
+        "n": [len(xa), len(xb)],
+        "max_xy_diff_m": float(d.max()),
+        "match": bool(d.max() <= tol_m),
+    }
 
 
 def local_map_rays(world, gt, idx, lidar) -> RayBatch:
@@ -157,18 +213,77 @@ def bench_extraction(world, gt, lidar, repeats: int) -> dict:
     rays = local_map_rays(world, gt, idx, lidar)
     spec = local_map_spec(gt[idx[0], :2], cfg)
     n_rays = int(rays.n)
-    t_total, poles = _median_time(lambda: extract_poles(rays, spec, cfg), repeats)
+    blocks: dict = {}
+    backends: dict = {}
+    poles_by: dict = {}
+    stats_by: dict = {}
+    for label, backend, threads in VARIANTS:
+        c = dataclasses.replace(cfg, backend=backend, threads=threads)
+        acc = jax.jit(
+            lambda r, s, c=c: accumulate(
+                s, r, chunk_size=c.chunk_size, backend=c.backend, threads=c.threads
+            )
+        )
+        try:
+            t_acc, stats = _median_time(
+                lambda acc=acc: acc(rays, spec), repeats, f"ray_tracing {label}", blocks
+            )
+            t_total, poles = _median_time(
+                lambda c=c: extract_poles(rays, spec, c), repeats, f"extract {label}", blocks
+            )
+        except Exception as e:  # noqa: BLE001 - recorded; the other paths still count
+            backends[label] = {"error": f"{type(e).__name__}: {e}"}
+            print(f"{label} FAILED: {e}", flush=True)
+            continue
+        poles_by[label], stats_by[label] = poles, stats
+        visits = int(np.asarray(stats.hits, np.int64).sum() + np.asarray(stats.misses).sum())
+        backends[label] = {
+            "backend": backend,
+            "threads": threads,
+            "ray_tracing_s": t_acc,
+            "ray_tracing_ms": 1e3 * t_acc,
+            "ray_tracing_best_s": blocks[f"ray_tracing {label}"]["best_s"],
+            "ray_tracing_m_rays_per_s": n_rays / t_acc / 1e6,
+            "ray_tracing_ns_per_cell": 1e9 * t_acc / visits,
+            "cell_visits": visits,
+            "extract_s": t_total,
+            "extract_ms": 1e3 * t_total,
+            "extract_best_s": blocks[f"extract {label}"]["best_s"],
+            "extract_rays_per_s": n_rays / t_total,
+            "n_poles": len(poles),
+            "load_ray_tracing": blocks[f"ray_tracing {label}"]["load"]["load_1min"],
+            "load_extract": blocks[f"extract {label}"]["load"]["load_1min"],
+        }
+    ref = "jax" if "jax" in stats_by else next(iter(stats_by))
+    stats, poles = stats_by[ref], poles_by[ref]
+    for label in ("native_1t", "native_2t"):
+        if label not in stats_by or "jax" not in stats_by:
+            continue
+        a, b = stats_by[label], stats_by["jax"]
+        e = backends[label]
+        e["native_over_jax_ray_tracing"] = ratio(
+            backends["jax"]["ray_tracing_s"], e["ray_tracing_s"]
+        )
+        e["native_over_jax_extract"] = ratio(backends["jax"]["extract_s"], e["extract_s"])
+        e["vs_jax"] = {
+            "hit_count_mismatch": int(
+                np.abs(np.asarray(a.hits, np.int64) - np.asarray(b.hits)).sum()
+            ),
+            "miss_count_mismatch": int(
+                np.abs(np.asarray(a.misses, np.int64) - np.asarray(b.misses)).sum()
+            ),
+            "poles": _poles_match(poles_by[label], poles_by["jax"]),
+        }
 
-    acc = jax.jit(lambda r, s: accumulate(s, r, chunk_size=cfg.chunk_size))
-    t_acc, stats = _median_time(lambda: acc(rays, spec), repeats)
+    # backend-independent stages, on the reference backend's statistics
     occ_fast = jax.jit(lambda st: fast_occupancy(beta_posterior(st), cfg.mu_o))
     occ_plain = jax.jit(lambda st: occupancy(beta_posterior(st), cfg.mu_o))
-    t_occ, occ = _median_time(lambda: occ_fast(stats), repeats)
-    t_occ_plain, _ = _median_time(lambda: occ_plain(stats), repeats)
+    t_occ, occ = _median_time(lambda: occ_fast(stats), repeats, "occupancy_table", blocks)
+    t_occ_plain, _ = _median_time(lambda: occ_plain(stats), repeats, "occupancy_per_voxel", blocks)
     post = jax.jit(
         lambda o: _poles_from_scores(pole_score_maps(o, cfg.widths, cfg.free_cells), cfg)
     )
-    t_post, _ = _median_time(lambda: post(occ), repeats)
+    t_post, _ = _median_time(lambda: post(occ), repeats, "scores_and_mean_shift", blocks)
 
     # NumPy / SciPy references of the same stages
     sub = min(n_rays, 20_000)
@@ -176,18 +291,24 @@ def bench_extraction(world, gt, lidar, repeats: int) -> dict:
     d = np.asarray(rays.directions, float)[:sub]
     r = np.asarray(rays.ranges, float)[:sub]
     k = np.asarray(rays.kind)[:sub]
-    t0 = time.perf_counter()
-    accumulate_numpy(
-        np.asarray(spec.origin, float),
-        spec.resolution,
-        spec.shape,
-        o,
-        d,
-        r,
-        k == HIT,
-        np.ones(sub, bool),
-    )
-    t_np_acc = (time.perf_counter() - t0) * n_rays / sub
+
+    def np_acc():
+        t0 = time.perf_counter()
+        accumulate_numpy(
+            np.asarray(spec.origin, float),
+            spec.resolution,
+            spec.shape,
+            o,
+            d,
+            r,
+            k == HIT,
+            np.ones(sub, bool),
+        )
+        dt = (time.perf_counter() - t0) * n_rays / sub
+        return {"times_s": [dt], "median_s": dt, "best_s": dt}
+
+    np_acc_t = _POLICY.measure("numpy ray_tracing (extrapolated)", np_acc)
+    t_np_acc = np_acc_t["median_s"]
     h, m = np.asarray(stats.hits), np.asarray(stats.misses)
     t0 = time.perf_counter()
     occ_np = numpy_occupancy(h, m, cfg.mu_o)
@@ -196,28 +317,53 @@ def bench_extraction(world, gt, lidar, repeats: int) -> dict:
     q_np = numpy_scores(occ_np, cfg.widths, cfg.free_cells)
     t_np_scores = time.perf_counter() - t0
     q_jax = np.asarray(pole_score_maps(jnp.asarray(occ_np), cfg.widths, cfg.free_cells))
+    np_total = t_np_acc + t_np_occ + t_np_scores
+    for e in backends.values():
+        if "extract_s" in e and e["backend"] == "native":
+            e["native_over_numpy_ray_tracing"] = t_np_acc / e["ray_tracing_s"]
+            e["native_over_numpy_extract"] = np_total / e["extract_s"]
+    n2 = backends.get("native_2t", {})
+    jx = backends.get("jax", {})
+    goals = {
+        "ray_tracing_target_s": GOAL_ACCUMULATE_S,
+        "ray_tracing_native_2t_s": n2.get("ray_tracing_s"),
+        "ray_tracing_met": bool(n2.get("ray_tracing_s", math.inf) <= GOAL_ACCUMULATE_S),
+        "extract_target_s": GOAL_EXTRACT_S,
+        "extract_native_2t_s": n2.get("extract_s"),
+        "extract_met": bool(n2.get("extract_s", math.inf) <= GOAL_EXTRACT_S),
+    }
+    main_label = "native_2t" if "extract_s" in n2 else ref
+    main = backends[main_label]
     return {
         "n_rays": n_rays,
         "grid_shape": list(spec.shape),
-        "n_poles": len(poles),
-        "extract_s": t_total,
-        "rays_per_s": n_rays / t_total,
+        "n_poles": main["n_poles"],
+        "reported_backend": main_label,
+        "extract_s": main["extract_s"],
+        "rays_per_s": n_rays / main["extract_s"],
         "stages_s": {
-            "ray_tracing": t_acc,
+            "ray_tracing": main["ray_tracing_s"],
+            "ray_tracing_jax": jx.get("ray_tracing_s"),
             "occupancy_table": t_occ,
             "occupancy_per_voxel": t_occ_plain,
             "scores_and_mean_shift": t_post,
         },
+        "backends": backends,
+        "goals": goals,
         "numpy_s": {
             "ray_tracing_extrapolated": t_np_acc,
             "ray_tracing_rays_timed": sub,
             "occupancy": t_np_occ,
             "score_maps": t_np_scores,
+            "load_ray_tracing": np_acc_t["load"]["load_1min"],
         },
         "numpy_occupancy_max_abs_diff": float(np.max(np.abs(occ_np - np.asarray(occ, float)))),
         "numpy_scores_max_abs_diff": float(np.max(np.abs(q_np - q_jax))),
-        "speedup_vs_numpy": (t_np_acc + t_np_occ + t_np_scores) / t_total,
-        "speedup_vs_paper": PAPER_EXTRACT_S / t_total,
+        "speedup_vs_numpy": np_total / main["extract_s"],
+        "speedup_vs_paper": PAPER_EXTRACT_S / main["extract_s"],
+        "jax_extract_s": jx.get("extract_s"),
+        "jax_speedup_vs_numpy": ratio(np_total, jx.get("extract_s")),
+        "timed_blocks": blocks,
     }
 
 
@@ -267,9 +413,9 @@ def bench_filter(world, gt, repeats: int, n_particles: int = 5000, n_poles: int 
         parts, jnp.full(n_particles, -math.log(n_particles), dtype), jax.random.key(0)
     )
     step = eqx.filter_jit(lambda st: pf.step(st, jnp.asarray([0.8, 0.0, 0.01], dtype), z))
-    t_step, _ = _median_time(lambda: step(state), repeats)
+    t_step, _ = _median_time(lambda: step(state), repeats, "pf step")
     meas = jax.jit(lambda p: model(p, z))
-    t_meas, ll = _median_time(lambda: meas(parts), repeats)
+    t_meas, ll = _median_time(lambda: meas(parts), repeats, "pf measurement")
     tree = cKDTree(lm)
     args = (model.var_m2.item(), model.eps.item(), model.d_max_m)
     t0 = time.perf_counter()
@@ -297,41 +443,71 @@ def bench_filter(world, gt, repeats: int, n_particles: int = 5000, n_poles: int 
 
 def bench_simulator(world, gt, lidar, repeats: int) -> dict:
     t, _ = _median_time(
-        lambda: simulate_urban_scan(world, gt[400], lidar, seed=1).ranges_m, repeats
+        lambda: simulate_urban_scan(world, gt[400], lidar, seed=1).ranges_m, repeats, "simulator"
     )
     return {"s_per_scan": t, "rays_per_scan": lidar.n_rays}
 
 
 def main() -> None:
+    global _POLICY
     ap = argparse.ArgumentParser()
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--out", type=Path, default=DEFAULT_OUT)
+    add_policy_args(ap)
     args = ap.parse_args()
+    _POLICY = policy_from_args(args)
+    t_start = time.perf_counter()
     repeats = 3 if args.quick else 10
     traj = load_urban_trajectory()
     gt = traj.xy_yaw
     world = make_urban_world(traj, seed=0)
     lidar = hdl32e()
     res = {
-        "machine": machine_info(),
+        "machine": machine_info(native=native_info()),
+        "quick": args.quick,
         "extraction": bench_extraction(world, gt, lidar, repeats),
         "filter": bench_filter(world, gt, repeats),
         "simulator": bench_simulator(world, gt, lidar, repeats),
     }
+    res["load_policy"] = _POLICY.summary()
+    res["load_average_end"] = list(os.getloadavg())
+    res["wall_time_s"] = time.perf_counter() - t_start
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(res, indent=2))
+    args.out.write_text(json.dumps(res, indent=2) + "\n")
     e, f, s = res["extraction"], res["filter"], res["simulator"]
     st, ns = e["stages_s"], e["numpy_s"]
     np_total = ns["ray_tracing_extrapolated"] + ns["occupancy"] + ns["score_maps"]
+    b = e["backends"]
+
+    def bk(label, key, scale=1e3, fmt=".1f"):
+        v = b.get(label, {}).get(key)
+        return "failed" if v is None else format(scale * v, fmt)
+
     rows = [
         ("Stage", "lidarjax", "NumPy/SciPy reference"),
         ("---", "---", "---"),
         (
-            f"pole extraction, 1 local map ({e['n_rays']} rays)",
-            f"{e['extract_s']:.3f} s ({e['rays_per_s'] / 1e6:.2f} M rays/s)",
+            f"pole extraction, 1 local map ({e['n_rays']} rays), native 1t / 2t / JAX",
+            f"{bk('native_1t', 'extract_s')} / {bk('native_2t', 'extract_s')} / "
+            f"{bk('jax', 'extract_s')} ms (goal ≤ 100 ms: "
+            f"{'met' if e['goals']['extract_met'] else 'NOT met'})",
             f"{np_total:.2f} s",
         ),
-        ("- ray tracing", f"{st['ray_tracing']:.3f} s", f"{ns['ray_tracing_extrapolated']:.2f} s"),
+        (
+            "- ray tracing, native 1t / 2t / JAX",
+            f"{bk('native_1t', 'ray_tracing_s')} / {bk('native_2t', 'ray_tracing_s')} / "
+            f"{bk('jax', 'ray_tracing_s')} ms (goal ≤ 40 ms: "
+            f"{'met' if e['goals']['ray_tracing_met'] else 'NOT met'})",
+            f"{ns['ray_tracing_extrapolated']:.2f} s",
+        ),
+        (
+            "- native/JAX (ray tracing; extraction), 1t / 2t",
+            f"{bk('native_1t', 'native_over_jax_ray_tracing', 1, '.2f')}; "
+            f"{bk('native_1t', 'native_over_jax_extract', 1, '.2f')} / "
+            f"{bk('native_2t', 'native_over_jax_ray_tracing', 1, '.2f')}; "
+            f"{bk('native_2t', 'native_over_jax_extract', 1, '.2f')}",
+            "-",
+        ),
         (
             "- occupancy (table / per voxel)",
             f"{st['occupancy_table']:.3f} / {st['occupancy_per_voxel']:.3f} s",
@@ -357,6 +533,9 @@ def main() -> None:
     ]
     for row in rows:
         print("| " + " | ".join(row) + " |")
+    loads = {k: v["load"]["load_1min"] for k, v in e["timed_blocks"].items()}
+    print(f"\nload (1 min) before each block: {json.dumps(loads)}")
+    print(f"(wall time {res['wall_time_s']:.0f} s; JSON: {args.out})")
 
 
 if __name__ == "__main__":

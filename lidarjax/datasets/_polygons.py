@@ -3,19 +3,23 @@
 The simulated experiments of section 10.5 draw a random polygon with 3, 4, 5, 6, 12, 36 or
 180 vertices around the sensor and sample a noisy 360-ray scan from it: Gaussian noise on
 the ray angles (0.2 deg), the exact intersection of each perturbed ray with the polygon,
-then Gaussian noise on the ranges (0.03 m). NumPy only; deterministic given the seeds.
+then Gaussian noise on the ranges (0.03 m). NumPy in and out (the intersection is
+:func:`~lidarjax.raytrace.ray_segment`, in float64); deterministic given the seeds.
 """
 
 from __future__ import annotations
 
 import operator
 
+import jax
 import numpy as np
+
+from ..raytrace import first_segment_hit
 
 __all__ = ["random_polygon", "simulate_polygon_scan"]
 
-# Relative slack on the edge parameter so rays through a vertex still hit one of its edges.
-_EDGE_TOL = 1e-12
+# First hits of rays [K 2] from one origin on the polygon's edges (start -> end) [n 2].
+_first_hits = jax.jit(jax.vmap(lambda *a: first_segment_hit(*a)[0], in_axes=(None, 0, None, None)))
 
 
 def random_polygon(
@@ -121,18 +125,9 @@ def simulate_polygon_scan(
     phi = azimuths + rng.normal(0.0, angular_sigma_rad, k)
     range_noise = rng.normal(0.0, radial_sigma_m, k)
 
-    dx, dy = np.cos(phi)[:, None], np.sin(phi)[:, None]  # [K 1] ray directions
-    px, py = poly[:, 0], poly[:, 1]  # [n] edge starts
-    edges = np.roll(poly, -1, axis=0) - poly
-    ex, ey = edges[:, 0], edges[:, 1]  # [n] edge vectors
-    # Solve t * d = p + s * e (Cramer's rule): t = (p x e) / (d x e), s = (p x d) / (d x e).
-    den = dx * ey - dy * ex  # [K n]
-    ok = den != 0.0
-    safe = np.where(ok, den, 1.0)
-    t = (px * ey - py * ex) / safe
-    s = (px * dy - py * dx) / safe
-    hit = ok & (s >= -_EDGE_TOL) & (s <= 1.0 + _EDGE_TOL) & (t > 0.0)
-    true_ranges = np.min(np.where(hit, t, np.inf), axis=1)
+    dirs = np.stack([np.cos(phi), np.sin(phi)], axis=-1)  # [K 2] ray directions
+    with jax.enable_x64(True):  # float64 whatever JAX's default
+        true_ranges = np.asarray(_first_hits(np.zeros(2), dirs, poly, np.roll(poly, -1, axis=0)))
     if not np.all(np.isfinite(true_ranges)):
         raise ValueError("polygon must enclose the origin: some rays do not hit it")
 

@@ -1,9 +1,10 @@
-"""A built-in, seeded synthetic 2-D office world and a scan simulator (NumPy only).
+"""A built-in, seeded synthetic 2-D office world and a scan simulator (NumPy in and out).
 
 The office is a set of wall segments: an outer shell, a corridor with rooms on both sides
 joined by door gaps, and a few pillars (square or polygonal). A robot drives a closed loop
 through the corridor and two rooms; :func:`simulate_scans` casts the beams of a planar
-lidar against the segments (exact ray–segment intersection) and adds Gaussian range noise.
+lidar against the segments (exact ray–segment intersection,
+:func:`~lidarjax.raytrace.ray_segment`, in float64) and adds Gaussian range noise.
 Everything is deterministic given the seed.
 """
 
@@ -11,7 +12,18 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import jax
 import numpy as np
+
+from ..raytrace import first_segment_hits, pad_to_chunks, unchunk
+
+_CHUNK = 4096  # rays per chunk of cast_rays (bounds memory: [chunk k])
+
+
+@jax.jit
+def _first_hits(o, d, a, b):
+    """First-hit distances of ray chunks ``[c chunk 2]`` on segments ``a -> b`` ``[k 2]``."""
+    return jax.lax.map(lambda x: first_segment_hits(x[0], x[1], a, b)[0], (o, d))
 
 
 @dataclass(frozen=True)
@@ -161,21 +173,13 @@ def cast_rays(
     Returns:
         ``[n]`` distances (m).
     """
-    a = segments[:, 0]  # [k 2]
-    e = segments[:, 1] - a  # [k 2]
-    out = np.full(len(origins), np.inf)
-    for lo in range(0, len(origins), 4096):  # bound memory: [chunk k]
-        o = origins[lo : lo + 4096, None, :]
-        d = directions[lo : lo + 4096, None, :]
-        denom = d[..., 0] * e[None, :, 1] - d[..., 1] * e[None, :, 0]
-        w = a[None] - o
-        with np.errstate(divide="ignore", invalid="ignore"):
-            t = (w[..., 0] * e[None, :, 1] - w[..., 1] * e[None, :, 0]) / denom
-            u = (w[..., 0] * d[..., 1] - w[..., 1] * d[..., 0]) / denom
-        ok = (np.abs(denom) > 1e-12) & (t > 0) & (u >= 0) & (u <= 1)
-        t = np.where(ok, t, np.inf).min(axis=1)
-        out[lo : lo + 4096] = np.where(t <= max_range, t, np.inf)
-    return out
+    segs = np.asarray(segments, np.float64)
+    # host-side padding: one compilation per number of chunks, not per number of rays
+    o = pad_to_chunks(np.asarray(origins, np.float64), _CHUNK, 0.0)
+    d = pad_to_chunks(np.asarray(directions, np.float64), _CHUNK, 1.0)
+    with jax.enable_x64(True):  # float64 whatever JAX's default
+        t = unchunk(np.asarray(_first_hits(o, d, segs[:, 0], segs[:, 1])), len(origins))
+    return np.where(t <= max_range, t, np.inf)
 
 
 def simulate_scans(

@@ -41,6 +41,7 @@ import jax.numpy as jnp
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..raytrace import ray_box, ray_cylinder, ray_sphere
 from ._kitti import load_kitti_poses, load_kitti_times
 
 __all__ = [
@@ -1031,58 +1032,34 @@ def _cast_sector(dirs, cyl, box, sph, expo, ground_z):
     t_ground = jnp.where(dz < -1e-9, ground_z / jnp.where(dz < -1e-9, dz, -1.0), inf)[:, 0]
 
     # Vertical finite cylinders: infinite-cylinder interval intersected with the z slab.
-    cx, cy, r, z0, z1, cv = (cyl[None, :, k] for k in range(6))
-    a = dx * dx + dy * dy  # [R 1]
-    vertical = a < 1e-12
-    a_safe = jnp.where(vertical, 1.0, a)
-    t_mid = (dx * cx + dy * cy) / a_safe
-    wx, wy = cx - t_mid * dx, cy - t_mid * dy
-    disc = r * r - (wx * wx + wy * wy)
-    half = jnp.sqrt(jnp.maximum(disc, 0.0) / a_safe)
-    inside_axis = cx * cx + cy * cy <= r * r
-    t1 = jnp.where(vertical, jnp.where(inside_axis, -inf, inf), t_mid - half)
-    t2 = jnp.where(vertical, jnp.where(inside_axis, inf, -inf), t_mid + half)
-    flat = jnp.abs(dz) < 1e-12
-    dz_safe = jnp.where(flat, 1.0, dz)
-    za, zb = z0 / dz_safe, z1 / dz_safe
-    in_slab = (z0 <= 0) & (z1 >= 0)
-    s1 = jnp.where(flat, jnp.where(in_slab, -inf, inf), jnp.minimum(za, zb))
-    s2 = jnp.where(flat, jnp.where(in_slab, inf, -inf), jnp.maximum(za, zb))
-    tin = jnp.maximum(t1, s1)
-    tout = jnp.minimum(t2, s2)
-    hit = (cv > 0) & ((disc >= 0) | vertical) & (tin <= tout) & (tin > 0)
+    origin = jnp.zeros(3, dirs.dtype)
+    ray = dirs[:, None, :]  # [R 1 3]
+    tin, tout = ray_cylinder(
+        cyl[None, :, 0:2], cyl[None, :, 2], cyl[None, :, 3], cyl[None, :, 4], origin, ray, eps=1e-12
+    )
+    hit = (cyl[None, :, 5] > 0) & (tin <= tout) & (tin > 0)
     t_cyl = jnp.min(jnp.where(hit, tin, inf), axis=1)
 
     # Oriented boxes: slab test in the box frame.
-    ox, oy, oz, hx, hy, hz, c, s, bv = (box[None, :, k] for k in range(9))
-    ux = c * dx + s * dy
-    uy = -s * dx + c * dy
-    uz = jnp.broadcast_to(dz, ux.shape)
-    tin = jnp.full(ux.shape, -inf)
-    tout = jnp.full(ux.shape, inf)
-    for o, u, h in ((ox, ux, hx), (oy, uy, hy), (oz, uz, hz)):
-        small = jnp.abs(u) < 1e-12
-        u_safe = jnp.where(small, 1.0, u)
-        ta, tb = (-h - o) / u_safe, (h - o) / u_safe
-        inside = jnp.abs(o) <= h
-        tin = jnp.maximum(tin, jnp.where(small, jnp.where(inside, -inf, inf), jnp.minimum(ta, tb)))
-        tout = jnp.minimum(
-            tout, jnp.where(small, jnp.where(inside, inf, -inf), jnp.maximum(ta, tb))
-        )
-    hit = (bv > 0) & (tin <= tout) & (tin > 0)
+    c, s = box[None, :, 6], box[None, :, 7]
+    ux, uy = c * dx + s * dy, -s * dx + c * dy  # [R Mb] ray direction in the box frame
+    # coordinate-major [3 ...] stacks of per-coordinate rows: XLA's CPU backend then fuses
+    # the per-axis slab work into fast loops (a [..., 3] layout is ~10x slower here)
+    u = jnp.stack([ux, uy, jnp.broadcast_to(dz, ux.shape)])  # [3 R Mb]
+    half = [box[None, :, 3 + k] for k in range(3)]
+    o = jnp.stack([box[None, :, k] for k in range(3)])  # [3 1 Mb]
+    lo, hi = jnp.stack([-h for h in half]), jnp.stack(half)
+    tin, tout = ray_box(lo, hi, o, u, eps=1e-12, axis=0)  # [R Mb]
+    hit = (box[None, :, 8] > 0) & (tin <= tout) & (tin > 0)
     t_box = jnp.min(jnp.where(hit, tin, inf), axis=1)
 
     # Permeable spheres: reflection at an exponential depth after entering.
-    qx, qy, qz, rr, rate, sv = (sph[None, :, k] for k in range(6))
-    t_mid = dx * qx + dy * qy + dz * qz
-    wx, wy, wz = qx - t_mid * dx, qy - t_mid * dy, qz - t_mid * dz
-    disc = rr * rr - (wx * wx + wy * wy + wz * wz)
-    half = jnp.sqrt(jnp.maximum(disc, 0.0))
-    t_in = jnp.maximum(t_mid - half, 0.0)
-    t_out = t_mid + half
+    rate = sph[None, :, 4]
+    t_enter, t_out = ray_sphere(sph[None, :, 0:3], sph[None, :, 3], origin, ray)  # [R Ms]
+    t_in = jnp.maximum(t_enter, 0.0)
     depth = jnp.where(rate > 0, expo / jnp.where(rate > 0, rate, 1.0), inf)
     t_hit = t_in + depth
-    hit = (sv > 0) & (disc > 0) & (t_out > 0) & (t_hit < t_out)
+    hit = (sph[None, :, 5] > 0) & (t_enter < t_out) & (t_out > 0) & (t_hit < t_out)
     t_sph = jnp.min(jnp.where(hit, t_hit, inf), axis=1)
 
     return jnp.minimum(jnp.minimum(t_ground, t_cyl), jnp.minimum(t_box, t_sph))

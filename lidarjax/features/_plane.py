@@ -53,7 +53,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from ..raytrace import ray_plane
+from ..raytrace import pad_to_chunks, ray_plane, unchunk
 
 __all__ = [
     "plane_ranges",
@@ -606,14 +606,10 @@ def _tetromino_costs(pts_flat: np.ndarray, cells: np.ndarray) -> np.ndarray:
     if n == 0:
         return np.zeros(0)
     if jax.config.jax_enable_x64:
-        n_chunks = -(-n // _TET_CHUNK)
-        padded = np.zeros((n_chunks * _TET_CHUNK, 4), dtype=np.int64)
-        padded[:n] = cells
-        padded[n:] = cells[0]
-        out = _tetromino_costs_jax(
-            jnp.asarray(pts_flat), jnp.asarray(padded.reshape(n_chunks, _TET_CHUNK, 4))
-        )
-        return np.asarray(out).reshape(-1)[:n]
+        # host-side padding (NumPy in, NumPy out): one compilation per number of chunks
+        padded = pad_to_chunks(np.asarray(cells, np.int64), _TET_CHUNK, fill="edge")
+        out = _tetromino_costs_jax(jnp.asarray(pts_flat), jnp.asarray(padded))
+        return unchunk(np.asarray(out), n)
     out = np.empty(n)
     for i in range(0, n, _TET_CHUNK):
         W, m, C = _points_stats(pts_flat[cells[i : i + _TET_CHUNK]])

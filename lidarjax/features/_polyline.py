@@ -39,13 +39,9 @@ import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from ..rays import HIT, RayBatch, is_concrete
-from ..raytrace import first_segment_hit
+from ..raytrace import cross2, first_segment_hits
 
 _CHUNK = 2048  # rays per lax.map chunk in expected_ranges
-
-
-def _cross(a: Array, b: Array) -> Array:
-    return a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
 
 
 # --------------------------------------------------------------------------------------
@@ -236,16 +232,7 @@ def _first_hits(m: PolylineMap, origins: Array, directions: Array):
     o = origins.reshape(-1, 2)
     d = directions.reshape(-1, 2)
     starts, ends, valid = m.segments()
-    hit = jax.vmap(first_segment_hit, in_axes=(0, 0, None, None, None))
-    n = o.shape[0]
-    if n <= _CHUNK:
-        t, i = hit(o, d, starts, ends, valid)
-    else:
-        pad = (-n) % _CHUNK
-        op = jnp.concatenate([o, jnp.zeros((pad, 2), o.dtype)]).reshape(-1, _CHUNK, 2)
-        dp = jnp.concatenate([d, jnp.ones((pad, 2), d.dtype)]).reshape(-1, _CHUNK, 2)
-        t, i = jax.lax.map(lambda x: hit(x[0], x[1], starts, ends, valid), (op, dp))
-        t, i = t.reshape(-1)[:n], i.reshape(-1)[:n]
+    t, i = first_segment_hits(o, d, starts, ends, valid, chunk_size=_CHUNK)
     return t.reshape(shape), i.reshape(shape)
 
 
@@ -405,11 +392,11 @@ def _candidate(sc: _Scan, st: _State, j, d_rm2):
     in_int = (fp > 0) & (fp < _fwd(ps, ns, k))
     a = sc.ends[ps] - sc.origin
     e_vec = sc.ends[ns] - sc.ends[ps]
-    den = _cross(sc.dirs, e_vec)
+    den = cross2(sc.dirs, e_vec)
     good = den > 0
-    rhat = _cross(a, e_vec) / jnp.where(good, den, 1.0)
+    rhat = cross2(a, e_vec) / jnp.where(good, den, 1.0)
     new_int = jnp.where(good, (sc.ranges - rhat) ** 2, jnp.inf)
-    span_ok = _cross(sc.dirs[ps], sc.dirs[ns]) > 0
+    span_ok = cross2(sc.dirs[ps], sc.dirs[ns]) > 0
     not_triangle = st.next[ns] != ps
     # end vertex: the rays between it and its neighbour lose their segment
     start_end = (p < 0) & (n >= 0)
@@ -547,7 +534,7 @@ def _initial_state(sc: _Scan, closed: bool, l_max, d_rm2) -> _State:
     idx = jnp.arange(k)
     nb = (idx + 1) % k
     gap = jnp.linalg.norm(sc.ends[nb] - sc.ends, axis=-1)
-    conn = sc.refl & sc.refl[nb] & (gap <= l_max) & (_cross(sc.dirs, sc.dirs[nb]) > 0)
+    conn = sc.refl & sc.refl[nb] & (gap <= l_max) & (cross2(sc.dirs, sc.dirs[nb]) > 0)
     if not closed:
         conn = conn & (idx < k - 1)
     nxt = jnp.where(conn, nb, -1)
@@ -859,9 +846,9 @@ def _plus_one(m: PolylineMap, sc: _Scan, solver, max_steps: int, n_params: int, 
         p = positions(y)
         a, b = p[pa], p[pb]
         e = b - a
-        den = _cross(sc.dirs, e)
+        den = cross2(sc.dirs, e)
         ok = use & (jnp.abs(den) > 1e-12)
-        rhat = _cross(a - sc.origin, e) / jnp.where(ok, den, 1.0)
+        rhat = cross2(a - sc.origin, e) / jnp.where(ok, den, 1.0)
         # a weak anchor (1e-3 per m moved: 1e-6 m² per m² in the objective) keeps the
         # directions that leave Σ d² unchanged (a vertex sliding along a straight wall)
         # determined

@@ -39,6 +39,7 @@ from ..maps._dct import DCTMap
 from ..maps._field import AbstractDecayRateField, field_log_likelihood
 from ..maps._grid import DecayRateMap
 from ..rays import HIT, SUB, check_finite_nonnegative, classify, from_scan
+from ..raytrace import box_exit
 
 __all__ = [
     "DCTScan",
@@ -206,9 +207,8 @@ class SmoothDecayRateScan(eqx.Module):
         o = pose.translation()
         lo = fld.origin
         hi = fld.origin + jnp.asarray(fld.rates.shape, o.dtype) * fld.resolution
-        d_safe = jnp.where(d == 0, 1.0, d)
-        t_far = jnp.where(d == 0, jnp.inf, jnp.maximum((lo - o) / d_safe, (hi - o) / d_safe))
-        t_exit = jnp.maximum(jnp.min(t_far, axis=-1), 0.0)
+        dt = jnp.result_type(lo, o, d)
+        t_exit = jnp.maximum(box_exit(lo, hi, jnp.asarray(o, dt), jnp.asarray(d, dt)), 0.0)
         l_in = jnp.minimum(length, t_exit)
         s = (jnp.arange(self.n_nodes, dtype=o.dtype) + 0.5) / self.n_nodes  # [K]
         pts = o + (l_in[:, None] * s)[..., None] * d[:, None, :]  # [b K 2]

@@ -44,6 +44,7 @@ from jaxtyping import Array, ArrayLike, Float, PyTree
 
 from .._math import log1mexp, safe_log
 from ..rays import HIT, SUB, RayBatch
+from ..raytrace import map_chunked, ray_box
 
 __all__ = [
     "AbstractDecayRateField",
@@ -112,15 +113,10 @@ class AbstractDecayRateField(eqx.Module):
 def clip_to_box(lower, upper, origin, direction, length):
     """Entry and exit distances ``0 <= t0 <= t1 <= length`` of one ray's part inside the
     box ``[lower, upper]`` (``t0 = t1 = 0`` when it misses the box); NaN-free for
-    axis-parallel rays and infinite lengths."""
-    par = direction == 0
-    dsafe = jnp.where(par, 1.0, direction)
-    ta = (lower - origin) / dsafe
-    tb = (upper - origin) / dsafe
-    inside_slab = (origin >= lower) & (origin <= upper)
-    t_lo = jnp.where(par, jnp.where(inside_slab, -jnp.inf, jnp.inf), jnp.minimum(ta, tb))
-    t_hi = jnp.where(par, jnp.where(inside_slab, jnp.inf, -jnp.inf), jnp.maximum(ta, tb))
-    lo, hi = jnp.max(t_lo), jnp.min(t_hi)
+    axis-parallel rays and infinite lengths. The slab test is
+    :func:`~lidarjax.raytrace.ray_box` (in the promoted dtype of box and ray)."""
+    dt = jnp.result_type(lower, upper, origin, direction)
+    lo, hi = ray_box(lower, upper, jnp.asarray(origin, dt), jnp.asarray(direction, dt))
     # a ray that misses the box (or only touches it behind the origin / beyond its length)
     # has an empty segment at 0 — also for infinite lengths, where inf - inf would be NaN
     miss = (hi <= lo) | (hi <= 0) | (lo >= length)
@@ -132,21 +128,14 @@ def clip_to_box(lower, upper, origin, direction, length):
 def map_chunks(fn: Callable, args: tuple, chunk_size: int, *, checkpoint: bool = False):
     """``fn(*args)`` for batched ``args`` (leading axis ``n``; ``fn`` maps ``[c ...]`` to
     ``[c]``), evaluated ``chunk_size`` rows at a time with ``lax.map`` to bound memory (the
-    last chunk is padded with copies of the first row). With ``checkpoint`` each chunk is
-    rematerialised in reverse mode, so gradients also need memory for one chunk only."""
+    last chunk is padded with copies of the last row, :func:`~lidarjax.raytrace.map_chunked`
+    with ``fill="edge"``). With ``checkpoint`` each chunk is rematerialised in reverse mode,
+    so gradients also need memory for one chunk only."""
     n = args[0].shape[0]
     if n <= chunk_size:
         return fn(*args)
-    n_chunks = -(-n // chunk_size)
-    pad = n_chunks * chunk_size - n
-
-    def padded(x):
-        x = jnp.concatenate([x, jnp.broadcast_to(x[:1], (pad,) + x.shape[1:])], axis=0)
-        return x.reshape((n_chunks, chunk_size) + x.shape[1:])
-
     body = jax.checkpoint(lambda a: fn(*a)) if checkpoint else (lambda a: fn(*a))
-    out = jax.lax.map(body, tuple(padded(a) for a in args))
-    return out.reshape((-1,) + out.shape[2:])[:n]
+    return map_chunked(body, tuple(args), chunk_size, fill="edge")
 
 
 # --------------------------------------------------------------------------------------

@@ -32,7 +32,7 @@ import optimistix as optx
 
 from .._math import log1mexp
 from ..rays import HIT, SUB, SUP, RayBatch
-from ..raytrace import GridSpec, accumulate
+from ..raytrace import GridSpec, accumulate, pad_to_chunks
 from ._dct import (
     DCTMap,
     _amplitude,
@@ -110,16 +110,10 @@ def _weights(m, origins, directions, lengths, use, shape, chunk_size, method):
             return (cos[0] * wt[:, None]).T @ cos[1]
         return jnp.einsum("np,n,nq,ns->pqs", cos[0], wt, cos[1], cos[2])
 
-    n = origins.shape[0]
-    chunk = max(1, min(chunk_size, n))
-    n_chunks = -(-n // chunk)
-    pad = n_chunks * chunk - n
-
-    def padded(x, fill):
-        x = jnp.concatenate([x, jnp.full((pad,) + x.shape[1:], fill, x.dtype)], axis=0)
-        return x.reshape((n_chunks, chunk) + x.shape[1:])
-
-    xs = (padded(origins, 0.0), padded(directions, 1.0), padded(lengths, 0.0), padded(use, False))
+    chunk = max(1, min(chunk_size, origins.shape[0]))
+    # padding rays are unused (``use`` False) and finite (no NaN in reverse mode)
+    fills = ((origins, 0.0), (directions, 1.0), (lengths, 0.0), (use, False))
+    xs = tuple(pad_to_chunks(x, chunk, fill) for x, fill in fills)
 
     def body(acc, x):
         if method == "quadrature":

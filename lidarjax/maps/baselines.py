@@ -24,6 +24,7 @@ from __future__ import annotations
 import numbers
 from collections.abc import Callable
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from scipy.special import ndtr
@@ -33,7 +34,7 @@ from sklearn.kernel_approximation import Nystroem
 from sklearn.linear_model import LogisticRegression
 
 from ..rays import HIT, SUP, RayBatch
-from ..raytrace import GridSpec
+from ..raytrace import GridSpec, ray_box
 from ._grid import ReflectionMap
 
 __all__ = [
@@ -129,16 +130,12 @@ def _chunks(m: int, n_params: int):
 def _box_interval(
     origins: np.ndarray, dirs: np.ndarray, lo: np.ndarray, hi: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Ray parameters ``[t_in, t_out]`` (m) of the closed box ``[lo, hi]`` (slab test);
-    empty (``t_in > t_out``) for rays that miss it. ``[n 2]`` inputs, ``[n]`` outputs."""
-    moving = dirs != 0
-    d_safe = np.where(moving, dirs, 1.0)
-    t_lo = (lo - origins) / d_safe
-    t_hi = (hi - origins) / d_safe
-    inside = (origins >= lo) & (origins <= hi)
-    near = np.where(moving, np.minimum(t_lo, t_hi), np.where(inside, -np.inf, np.inf))
-    far = np.where(moving, np.maximum(t_lo, t_hi), np.where(inside, np.inf, -np.inf))
-    return near.max(axis=1), far.min(axis=1)
+    """Ray parameters ``[t_in, t_out]`` (m) of the closed box ``[lo, hi]``
+    (:func:`~lidarjax.raytrace.ray_box`, in float64 whatever JAX's default); empty
+    (``t_in > t_out``) for rays that miss it. ``[n 2]`` inputs, ``[n]`` outputs."""
+    with jax.enable_x64(True):
+        t_in, t_out = ray_box(lo, hi, np.asarray(origins, np.float64), dirs)
+        return np.asarray(t_in), np.asarray(t_out)
 
 
 def occupancy_training_points(

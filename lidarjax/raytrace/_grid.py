@@ -502,8 +502,10 @@ def fold_rays(
         )
     dtype = jnp.result_type(origins.dtype, spec.origin.dtype)
     origins, directions, lengths = check_rays(spec, origins, directions, lengths)
+    if backend not in _native.BACKENDS:
+        raise ValueError(f"backend must be one of {_native.BACKENDS}, got {backend!r}")
     if isinstance(term, CellTerm) and _native.resolve(backend) == "native":
-        outs = _native.fold(
+        fields = _native.fold(
             spec,
             term.mode,
             term.tables.astype(dtype),
@@ -512,19 +514,26 @@ def fold_rays(
             lengths.astype(dtype),
             threads,
         )
-        acc, last_cell, last_len, grid_len, any_valid, t_start, t_end = outs
-        return RayFold(
-            body=acc,
-            last_cell=last_cell,
-            last_len=last_len,
-            grid_len=grid_len,
-            any_valid=any_valid,
-            t_start=t_start,
-            t_end=t_end,
-            complete=jnp.ones(n, bool),
-        )
-    if backend not in _native.BACKENDS:
-        raise ValueError(f"backend must be one of {_native.BACKENDS}, got {backend!r}")
+    else:
+        fields = _fold_streams(spec, origins, directions, lengths, term, chunk_size, streams)
+    acc, last_cell, last_len, grid_len, any_valid, t_start, t_end = fields
+    return RayFold(
+        body=acc,
+        last_cell=last_cell,
+        last_len=last_len,
+        grid_len=grid_len,
+        any_valid=any_valid,
+        t_start=t_start,
+        t_end=t_end,
+        complete=jnp.ones(n, bool),
+    )
+
+
+def _fold_streams(spec, origins, directions, lengths, term, chunk_size, streams):
+    """JAX path of :func:`fold_rays`: rays sorted by expected work, dealt round-robin to
+    ``streams`` chunked walks; the seven fold fields in input order."""
+    n = origins.shape[0]
+    dtype = jnp.result_type(origins.dtype, spec.origin.dtype)
     unit_sum = jnp.sum(jnp.abs(directions), axis=-1) / jnp.maximum(
         jnp.sqrt(jnp.sum(directions * directions, axis=-1)), jnp.finfo(dtype).tiny
     )
@@ -543,17 +552,7 @@ def fold_rays(
         for sel, res in zip(parts, results):
             out = out.at[sel].set(res[k])
         fields.append(out)
-    acc, last_cell, last_len, grid_len, any_valid, t_start, t_end = fields
-    return RayFold(
-        body=acc,
-        last_cell=last_cell,
-        last_len=last_len,
-        grid_len=grid_len,
-        any_valid=any_valid,
-        t_start=t_start,
-        t_end=t_end,
-        complete=jnp.ones(n, bool),
-    )
+    return fields
 
 
 class CellTerm(eqx.Module):

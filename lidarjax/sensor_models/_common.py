@@ -17,7 +17,7 @@ from .._math import log1mexp as log1mexp
 from .._math import mul0 as mul0
 from .._math import safe_log as safe_log
 from ..rays import HIT, SUB, RayBatch, from_scan, is_concrete
-from ..raytrace import GridSpec, fold_traversal, max_cells_for, traverse
+from ..raytrace import GridSpec, fold_traversal, map_chunked, max_cells_for, traverse
 from ..raytrace import gather as gather
 
 
@@ -97,11 +97,7 @@ def _pose_params(poses) -> Float[Array, "p 4"]:
 
 @eqx.filter_jit
 def _at_poses(model_fn, model, az, ranges, params, r_min, r_max, chunk_size, max_cells):
-    n = params.shape[0]
-    chunk = min(chunk_size, n)
-    n_chunks = -(-n // chunk)
-    pad = n_chunks * chunk - n
-    padded = jnp.concatenate([params, jnp.broadcast_to(params[:1], (pad, 4))], axis=0)
+    chunk = min(chunk_size, params.shape[0])
 
     def one_chunk(p):
         rays = from_scan(jaxlie.SE2(p), az, ranges, r_min, r_max)  # [c b]
@@ -109,8 +105,8 @@ def _at_poses(model_fn, model, az, ranges, params, r_min, r_max, chunk_size, max
             return model_fn(rays)
         return model_fn(model, rays, max_cells=max_cells)
 
-    out = jax.lax.map(one_chunk, padded.reshape(n_chunks, chunk, 4))
-    return out.reshape(n_chunks * chunk, -1)[:n]
+    # padding poses are copies of the last one (valid poses: no NaN in reverse mode)
+    return map_chunked(one_chunk, params, chunk, fill="edge").reshape(params.shape[0], -1)
 
 
 def ray_log_likelihoods_at_poses(

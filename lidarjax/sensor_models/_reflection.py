@@ -3,13 +3,12 @@
 
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from ..maps._grid import ReflectionMap
 from ..rays import HIT, SUB, RayBatch
-from ..raytrace import RayFold
+from ..raytrace import CellTerm, RayFold, box_exit
 from ._common import (
     check_model_inputs,
     default_max_cells,
@@ -24,22 +23,16 @@ from ._common import (
 
 def _cell_exit(spec, cell, origin, direction):
     """Ray parameter (m) where the ray ``origin + t * direction`` (unit direction) leaves
-    the box of ``cell`` (slab test, far planes only); batched over leading axes."""
+    the box of ``cell`` (:func:`~lidarjax.raytrace.box_exit`); batched over leading axes."""
     lo = spec.origin + cell.astype(spec.origin.dtype) * spec.resolution
     hi = lo + spec.resolution
-    moving = direction != 0
-    d_safe = jnp.where(moving, direction, 1.0)
-    far = jnp.maximum((lo - origin) / d_safe, (hi - origin) / d_safe)
-    return jnp.min(jnp.where(moving, far, jnp.inf), axis=-1)
-
-
-def _term(probs, cells, lengths):
-    return safe_log(1.0 - gather(probs, cells))
+    dt = jnp.result_type(lo, origin, direction)
+    return box_exit(lo, hi, jnp.asarray(origin, dt), jnp.asarray(direction, dt))
 
 
 def term(m: ReflectionMap):
     """Per-cell summand ``log(1 - q_i)`` of the cells a ray passes fully."""
-    return jax.tree_util.Partial(_term, m.probs)
+    return CellTerm.linear(offset=safe_log(1.0 - m.probs))
 
 
 def finish(m: ReflectionMap, f: RayFold, origin, direction, length, kind):

@@ -869,7 +869,8 @@ def accumulate(
         sub_rays: ``"ignore"`` or ``"hit"``.
         backend: ``"auto"`` (native C++ walk when built, else JAX with one warning),
             ``"native"`` or ``"jax"``; see :mod:`lidarjax.raytrace._native`. Both give the
-            same counts; lengths agree to round-off of the summation order.
+            same counts (up to sliver segments at the walk tolerance, see the README);
+            lengths agree to round-off.
         threads: native worker threads, each with private accumulators merged at the end
             (default: all cores). Ignored by the JAX path.
 

@@ -30,10 +30,16 @@ native = pytest.mark.skipif(
 def test_native_is_built_where_a_compiler_exists():
     """`make` builds the kernels; with a compiler present, a missing or stale library is a
     build failure, not a reason to skip the native tests silently."""
-    if not HAVE_COMPILER:
-        pytest.skip("no C++ compiler on this machine: the JAX path is used")
-    assert _build.up_to_date(), "native library missing or stale: run `make`"
-    assert _native.available(), _native.unavailable_reason()
+    if HAVE_COMPILER:
+        assert _build.up_to_date(), "native library missing or stale: run `make`"
+        assert _native.available(), _native.unavailable_reason()
+        assert _native.unavailable_reason() is None
+    else:
+        # no compiler: nothing may pretend to be native; "auto" must fall back to JAX
+        assert not _native.available()
+        assert "not built" in (_native.unavailable_reason() or "")
+        with pytest.warns(RuntimeWarning, match="pure-JAX"):
+            assert _native.resolve("auto") == "jax"
 
 
 # --------------------------------------------------------------------------------------

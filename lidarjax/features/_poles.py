@@ -49,6 +49,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 from ..maps._posterior import BetaPosteriorMap, beta_posterior
 from ..rays import RayBatch
 from ..raytrace import GridSpec, GridStats, accumulate
+from ..raytrace._native import check_backend
 
 __all__ = [
     "PoleConfig",
@@ -105,8 +106,7 @@ class PoleConfig:
     threads: int | None = None
 
     def __post_init__(self):
-        if self.backend not in ("auto", "native", "jax"):
-            raise ValueError(f"backend must be 'auto', 'native' or 'jax', got {self.backend!r}")
+        check_backend(self.backend)
         if not (self.resolution_m > 0 and math.isfinite(self.resolution_m)):
             raise ValueError(f"resolution_m must be > 0, got {self.resolution_m!r}")
         if len(self.extent_m) != 3 or not all(e > 0 for e in self.extent_m):

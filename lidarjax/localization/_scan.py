@@ -10,6 +10,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from ..maps._grid import EndpointMap
 from ..rays import HIT, from_scan
+from ..raytrace._native import check_backend, check_threads
 from ..sensor_models._common import gather, safe_log
 from ..sensor_models._fast import GRID_MODELS, batch_log_likelihood
 
@@ -84,12 +85,9 @@ class ScanModel(eqx.Module):
         self.ray_floor = None if ray_floor is None else float(ray_floor)
         self.endpoint_normalized = bool(endpoint_normalized)
         self.chunk_size = int(chunk_size)
-        if backend not in ("auto", "native", "jax"):
-            raise ValueError(f"backend must be 'auto', 'native' or 'jax', got {backend!r}")
-        if threads is not None and (
-            isinstance(threads, bool) or not isinstance(threads, int) or threads <= 0
-        ):
-            raise ValueError(f"threads must be a positive int or None, got {threads!r}")
+        check_backend(backend)
+        if threads is not None:
+            check_threads(threads)
         self.backend = backend
         self.threads = threads
 

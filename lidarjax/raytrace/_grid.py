@@ -501,9 +501,8 @@ def fold_rays(
             "use backend='jax' for arbitrary terms"
         )
     dtype = jnp.result_type(origins.dtype, spec.origin.dtype)
-    origins, directions, lengths = check_rays(spec, origins, directions, lengths)
-    if backend not in _native.BACKENDS:
-        raise ValueError(f"backend must be one of {_native.BACKENDS}, got {backend!r}")
+    _native.check_backend(backend)
+    # the kernel validates its rays and grid itself (naming the first bad ray)
     if isinstance(term, CellTerm) and _native.resolve(backend) == "native":
         fields = _native.fold(
             spec,
@@ -515,6 +514,7 @@ def fold_rays(
             threads,
         )
     else:
+        origins, directions, lengths = check_rays(spec, origins, directions, lengths)
         fields = _fold_streams(spec, origins, directions, lengths, term, chunk_size, streams)
     acc, last_cell, last_len, grid_len, any_valid, t_start, t_end = fields
     return RayFold(
@@ -575,7 +575,7 @@ class CellTerm(eqx.Module):
     mode: int = eqx.field(static=True)
 
     def __init__(self, tables: Float[ArrayLike, "k *shape ..."], mode: int):
-        need = {0: 2, 1: 1, 2: 1, 3: 3}
+        need = _native.TERM_MODES
         if mode not in need:
             raise ValueError(f"mode must be 0, 1, 2 or 3, got {mode!r}")
         tables = jnp.asarray(tables)
@@ -887,8 +887,7 @@ def accumulate(
     if not isinstance(chunk_size, int) or chunk_size <= 0:
         raise ValueError(f"chunk_size must be a positive int, got {chunk_size!r}")
     threads = _native.check_threads(threads)
-    if backend not in _native.BACKENDS:
-        raise ValueError(f"backend must be one of {_native.BACKENDS}, got {backend!r}")
+    _native.check_backend(backend)
     flat = rays.flatten()
     n = flat.ranges.shape[0]
     if n == 0:

@@ -97,6 +97,13 @@ def unavailable_reason() -> str | None:
     return None
 
 
+def check_backend(backend: str) -> str:
+    """``backend`` validated (``ValueError`` naming it otherwise)."""
+    if backend not in BACKENDS:
+        raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+    return backend
+
+
 def resolve(backend: str) -> str:
     """``"native"`` or ``"jax"`` for a requested backend (see the module docstring).
 
@@ -104,8 +111,7 @@ def resolve(backend: str) -> str:
         ValueError: unknown backend name.
         RuntimeError: ``backend="native"`` but the kernels are unavailable.
     """
-    if backend not in BACKENDS:
-        raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+    check_backend(backend)
     if backend == "auto":
         env = os.environ.get("LIDARJAX_BACKEND", "auto")
         if env not in BACKENDS:

@@ -20,6 +20,7 @@ from ..maps._posterior import finish as _posterior_finish
 from ..maps._posterior import term as _posterior_term
 from ..rays import RayBatch
 from ..raytrace import fold_rays
+from ..raytrace._native import check_backend
 from . import _decay_rate, _endpoint, _reflection
 from ._common import trace_lengths
 
@@ -97,6 +98,5 @@ def batch_log_likelihood(
         raise ValueError(f"chunk_size must be a positive int, got {chunk_size!r}")
     if rays.ranges.size == 0:
         raise ValueError("rays is empty")
-    if backend not in ("auto", "native", "jax"):
-        raise ValueError(f"backend must be 'auto', 'native' or 'jax', got {backend!r}")
+    check_backend(backend)
     return _fast(model, rays, chunk_size, backend, threads)

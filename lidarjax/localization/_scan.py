@@ -9,7 +9,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from ..maps._grid import EndpointMap
-from ..rays import HIT, from_scan
+from ..rays import HIT, SUB, from_scan
 from ..raytrace._native import check_backend, check_threads
 from ..sensor_models._common import gather, safe_log
 from ..sensor_models._fast import GRID_MODELS, batch_log_likelihood
@@ -37,6 +37,18 @@ class ScanModel(eqx.Module):
             False (default) the classic likelihood field of MCL,
             ``log(1 - P) + log(z_hit N(dist) + z_rand / r_max)`` for in-range readings and
             ``log P`` otherwise, about 10x cheaper.
+        z_rand: weight of a uniform "random reading" component mixed into every beam's
+            likelihood (Thrun et al.'s z_rand), in [0, 1): ``p' = (1 - z_rand) p + z_rand
+            u`` with ``u`` the uniform reading distribution on ``[0, r_max)``: density
+            ``1 / r_max`` for in-range readings, mass ``r_min / r_max`` for SUB, 0 for SUP.
+            ``p'`` stays normalised. A beam that the map cannot explain (a person, a
+            changed door) then costs at most ``-log(z_rand / r_max)`` instead of vetoing
+            the particle. 0 (default) is the pure model.
+        beam_exponent: tempering exponent ``beta`` in (0, 1] on every beam's (floored,
+            mixed) log-likelihood: ``sum_b beta log p(z_b | X)``. Neighbouring beams of a
+            scan are not independent given an imperfect map; ``beta < 1`` (e.g. the
+            inverse of the number of beams that share one independent piece of evidence)
+            keeps the filter from being over-confident. 1 (default) is the pure model.
         chunk_size: rays walked together (see ``batch_log_likelihood``).
         backend: ray-walk backend, ``"auto"``, ``"native"`` or ``"jax"`` (see
             ``batch_log_likelihood``).
@@ -49,6 +61,8 @@ class ScanModel(eqx.Module):
     r_max: float = eqx.field(static=True)
     ray_floor: float | None = eqx.field(static=True, default=None)
     endpoint_normalized: bool = eqx.field(static=True, default=False)
+    z_rand: float = eqx.field(static=True, default=0.0)
+    beam_exponent: float = eqx.field(static=True, default=1.0)
     chunk_size: int = eqx.field(static=True, default=2048)
     backend: str = eqx.field(static=True, default="auto")
     threads: int | None = eqx.field(static=True, default=None)
@@ -62,6 +76,8 @@ class ScanModel(eqx.Module):
         *,
         ray_floor: float | None = None,
         endpoint_normalized: bool = False,
+        z_rand: float = 0.0,
+        beam_exponent: float = 1.0,
         chunk_size: int = 2048,
         backend: str = "auto",
         threads: int | None = None,
@@ -79,8 +95,16 @@ class ScanModel(eqx.Module):
             raise ValueError(f"need 0 <= r_min < r_max, got r_min={r_min}, r_max={r_max}")
         if ray_floor is not None and not np.isfinite(ray_floor):
             raise ValueError(f"ray_floor must be finite or None, got {ray_floor!r}")
+        if not (isinstance(z_rand, (int, float, np.floating)) and 0 <= z_rand < 1):
+            raise ValueError(f"z_rand must be a number in [0, 1), got {z_rand!r}")
+        if not (isinstance(beam_exponent, (int, float, np.floating)) and 0 < beam_exponent <= 1):
+            raise ValueError(f"beam_exponent must be a number in (0, 1], got {beam_exponent!r}")
+        if z_rand > 0 and not np.isfinite(r_max):
+            raise ValueError("z_rand > 0 needs a finite r_max (the uniform component's support)")
         self.map = map
         self.azimuths = az
+        self.z_rand = float(z_rand)
+        self.beam_exponent = float(beam_exponent)
         self.r_min, self.r_max = r_min, r_max
         self.ray_floor = None if ray_floor is None else float(ray_floor)
         self.endpoint_normalized = bool(endpoint_normalized)
@@ -94,7 +118,9 @@ class ScanModel(eqx.Module):
     def ray_log_likelihoods(
         self, particles: jaxlie.SE2, ranges: Float[ArrayLike, " b"]
     ) -> Float[Array, "n b"]:
-        """Per-ray log-likelihoods ``[n b]`` (floored at ``ray_floor``)."""
+        """Per-ray log-likelihoods ``[n b]`` (nats): the model's, mixed with the uniform
+        component (``z_rand``), floored at ``ray_floor`` and multiplied by
+        ``beam_exponent``."""
         if not isinstance(particles, jaxlie.SE2):
             raise ValueError(f"particles must be a jaxlie.SE2, got {type(particles).__name__}")
         ranges = jnp.asarray(ranges, self.azimuths.dtype)
@@ -120,12 +146,29 @@ class ScanModel(eqx.Module):
                 backend=self.backend,
                 threads=self.threads,
             )
+        if self.z_rand > 0:
+            ll = _mix_uniform(ll, rays.kind, self.z_rand, self.r_min, self.r_max)
         if self.ray_floor is not None:
             ll = jnp.maximum(ll, self.ray_floor)
+        if self.beam_exponent != 1.0:
+            ll = self.beam_exponent * ll
         return ll
 
     def __call__(self, particles: jaxlie.SE2, ranges: Float[ArrayLike, " b"]) -> Float[Array, " n"]:
         return jnp.sum(self.ray_log_likelihoods(particles, ranges), axis=-1)
+
+
+def _mix_uniform(ll, kind, z_rand: float, r_min: float, r_max: float) -> Array:
+    """``log((1 - z) p + z u)`` per ray from ``log p``; ``u`` is the uniform reading
+    distribution on ``[0, r_max)`` (density ``1/r_max`` for HIT, mass ``r_min/r_max`` for
+    SUB, 0 for SUP). ``-inf`` inputs stay finite where ``u > 0``; no NaN."""
+    log_keep = np.log1p(-z_rand)
+    log_u = jnp.where(
+        kind == HIT,
+        np.log(z_rand / r_max),
+        jnp.where(kind == SUB, np.log(z_rand * r_min / r_max) if r_min > 0 else -jnp.inf, -jnp.inf),
+    ).astype(ll.dtype)
+    return jnp.logaddexp(ll + log_keep, log_u)
 
 
 def _likelihood_field(m: EndpointMap, rays, r_max: float) -> Array:

@@ -3,7 +3,8 @@ maximum-likelihood decay-rate, reflection and endpoint maps, and the closed-form
 posteriors (Beta / Gamma per cell) with their measurement likelihoods and occupancy; DCT
 maps (ch. 9): continuous decay-rate maps with closed-form likelihoods and an optimistix fit;
 the decay-rate field interface (``AbstractDecayRateField``: grid, DCT or a user's field,
-one forward model ``field_log_likelihood`` and one optimistix ``fit``);
+one forward model ``field_log_likelihood`` and one optimistix ``fit``); kernel smoothing
+of the statistics for robust localization (``smooth_stats``);
 GPOM and Hilbert-map baselines (``lidarjax.maps.baselines``, scikit-learn)."""
 
 from ._dct import DCTMap as DCTMap
@@ -39,6 +40,8 @@ from ._posterior import gamma_moment_prior as gamma_moment_prior
 from ._posterior import gamma_posterior as gamma_posterior
 from ._posterior import log_likelihood as posterior_log_likelihood
 from ._posterior import occupancy as occupancy
+from ._smoothing import smooth_cells as smooth_cells
+from ._smoothing import smooth_stats as smooth_stats
 
 __all__ = [
     "AbstractDecayRateField",
@@ -74,4 +77,6 @@ __all__ = [
     "gamma_moment_prior",
     "posterior_log_likelihood",
     "occupancy",
+    "smooth_cells",
+    "smooth_stats",
 ]

@@ -57,8 +57,9 @@ NAMES = {
 }
 
 
-def build_maps(log, cfg: DictConfig, r_min: float, r_max: float) -> tuple[dict, GridSpec]:
-    """All grid models from the even-numbered scans at their corrected poses."""
+def build_stats(log, cfg: DictConfig, r_min: float, r_max: float):
+    """Grid statistics of the even-numbered scans at their corrected poses, the grid, and
+    the endpoint model's ``p_out`` (``auto``: fraction of out-of-range mapping rays)."""
     idx = np.arange(0, log.n_scans, 2)
     p = log.poses[idx]
     rays = from_scan(
@@ -76,20 +77,34 @@ def build_maps(log, cfg: DictConfig, r_min: float, r_max: float) -> tuple[dict, 
     p_out = cfg.endpoint.p_out
     if p_out == "auto":
         p_out = float(np.clip((np.asarray(rays.kind) != HIT).mean(), 1e-3, 0.5))
-    models = {
-        "dec": maps.decay_rate_map(stats),
-        "ref": maps.reflection_map(stats),
-        "end": maps.endpoint_map(
+    return stats, spec, float(p_out)
+
+
+def model_from_stats(name: str, stats, cfg: DictConfig, p_out: float):
+    """One grid model (``dec``, ``ref``, ``end``, ``fmp_dec``, ``fmp_ref``) from stats."""
+    if name == "dec":
+        return maps.decay_rate_map(stats)
+    if name == "ref":
+        return maps.reflection_map(stats)
+    if name == "end":
+        return maps.endpoint_map(
             stats,
             sigma_m=float(cfg.endpoint.sigma_m),
             z_hit=float(cfg.endpoint.z_hit),
             z_rand=float(cfg.endpoint.z_rand),
-            p_out=float(p_out),
-        ),
-        "fmp_dec": maps.gamma_posterior(stats),
-        "fmp_ref": maps.beta_posterior(stats),
-    }
-    return models, spec
+            p_out=p_out,
+        )
+    if name == "fmp_dec":
+        return maps.gamma_posterior(stats)
+    if name == "fmp_ref":
+        return maps.beta_posterior(stats)
+    raise ValueError(f"unknown model {name!r}; choose from {sorted(NAMES)}")
+
+
+def build_maps(log, cfg: DictConfig, r_min: float, r_max: float) -> tuple[dict, GridSpec]:
+    """All grid models from the even-numbered scans at their corrected poses."""
+    stats, spec, p_out = build_stats(log, cfg, r_min, r_max)
+    return {m: model_from_stats(m, stats, cfg, p_out) for m in NAMES}, spec
 
 
 def initial_states(key, start_pose: np.ndarray, cfg: DictConfig):
@@ -193,11 +208,12 @@ def refine_eval(m, log, seq, est, cfg, r_min, r_max):
     }
 
 
-def evaluate_log(name: str, cfg: DictConfig, failures: bool = False) -> dict:
-    t_start = time.perf_counter()
+def prepare(name: str, cfg: DictConfig, failures: bool = False):
+    """Load a log and the filter's input: odd-numbered scans (the first ``max_steps + 1``),
+    ``n_beams`` evenly spaced beams, relative odometry, corrected poses for evaluation.
+    Returns ``(log, r_min, r_max, azimuths, seq, key)``."""
     log = load_carmen(fetch(name))
     r_min, r_max = float(cfg.r_min_m), float(log.usable_range_m)
-    models, spec = build_maps(log, cfg, r_min, r_max)
     odd = np.arange(1, log.n_scans, 2)[: int(cfg.filter.max_steps) + 1]
     beams = np.unique(np.round(np.linspace(0, log.n_beams - 1, int(cfg.filter.n_beams))))
     beams = beams.astype(int)
@@ -212,10 +228,22 @@ def evaluate_log(name: str, cfg: DictConfig, failures: bool = False) -> dict:
         "z": jnp.asarray(z),
         "gt": log.poses[odd[1:]],
         "scan_idx": odd[1:],
+        "start": log.poses[odd[0]],
     }
-    states = initial_states(key, log.poses[odd[0]], cfg)
+    return log, r_min, r_max, az, seq, key
+
+
+def evaluate_log(name: str, cfg: DictConfig, failures: bool = False) -> dict:
+    t_start = time.perf_counter()
+    log, r_min, r_max, az, seq, key = prepare(name, cfg, failures)
+    models, spec = build_maps(log, cfg, r_min, r_max)
+    states = initial_states(key, seq["start"], cfg)
     t_map = time.perf_counter() - t_start
-    out = {"n_steps": int(odd.size - 1), "n_beams": int(beams.size), "grid_shape": list(spec.shape)}
+    out = {
+        "n_steps": int(len(seq["scan_idx"])),
+        "n_beams": int(az.shape[0]),
+        "grid_shape": list(spec.shape),
+    }
     out["map_seconds"] = t_map
     per_model, curves = {}, {}
     for mname in cfg.models:

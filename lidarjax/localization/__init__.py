@@ -7,16 +7,20 @@ from ._filter import (
     ParticleFilter,
     ParticleState,
     StepInfo,
+    count_occupied_bins,
     effective_sample_size,
     estimate,
+    global_injector,
     init_gaussian,
     init_global,
     init_uniform_disc,
+    kld_particle_count,
     multinomial_resample,
     normalize_log_weights,
     stratified_resample,
     systematic_resample,
 )
+from ._guided import GradientGuidedMotion, SmoothScanSurrogate, smooth_scan_surrogate
 from ._landmarks import (
     PoleLookup,
     PoleMap,
@@ -34,6 +38,9 @@ from ._poses import circular_mean, from_vector, relative_motion, take, to_vector
 from ._scan import ScanModel
 
 __all__ = [
+    "GradientGuidedMotion",
+    "SmoothScanSurrogate",
+    "smooth_scan_surrogate",
     "PoleMap",
     "overlap_clusters",
     "merge_poles",
@@ -66,4 +73,7 @@ __all__ = [
     "take",
     "to_vector",
     "weighted_mean",
+    "count_occupied_bins",
+    "global_injector",
+    "kld_particle_count",
 ]

@@ -103,7 +103,9 @@ def diagnose(cache: MapCache, az, seq, cfg, r_min, r_max, models) -> tuple[dict,
     out, surfaces = {}, {}
     offsets = [0.1, 0.2, 0.5, 1.0]
     for name in models:
-        sm = loc.ScanModel(cache.get(name), az, r_min, r_max, ray_floor=None)
+        base_model, _, sigma = name.partition("@")  # "dec@0.1": smoothed statistics
+        m = cache.get(base_model, float(sigma) if sigma else 0.0)
+        sm = loc.ScanModel(m, az, r_min, r_max, ray_floor=None)
 
         def per_ray(p, zz, sm=sm):
             return sm.ray_log_likelihoods(jaxlie.SE2.from_xy_theta(p[0:1], p[1:2], p[2:3]), zz)[0]
@@ -194,6 +196,8 @@ def make_filter(v: dict, cache: MapCache, az, cfg, r_min, r_max):
             surrogate,
             step_scale=float(g.get("step_scale", 1.0)),
             proposal_inflation=float(g.get("proposal_inflation", 1.0)),
+            n_grad_steps=int(g.get("n_grad_steps", 1)),
+            curvature=bool(g.get("curvature", True)),
         )
     extra = {}
     if float(v.get("alpha_fast", 0.0)) > 0:
@@ -276,7 +280,7 @@ def write_tables(results: dict, cfg) -> str:
             "### Diagnosis at the true poses: beams below the floor [%] / fall of the scan "
             "log-likelihood for a 0.1 m, 0.5 m, 0.05 rad offset [nats, median]",
             "",
-            "| log | " + " | ".join(NAMES[m] for m in diag_models) + " |",
+            "| log | " + " | ".join(_label(m) for m in diag_models) + " |",
             "|---|" + "---|" * len(diag_models),
         ]
         for name, r in results.items():
@@ -341,13 +345,24 @@ def write_tables(results: dict, cfg) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _label(name: str) -> str:
+    base, _, sigma = name.partition("@")
+    return NAMES[base] + (f", smoothed {sigma} m" if sigma else "")
+
+
 def plot_surfaces(surfaces: dict, out: Path) -> None:
     logs = list(surfaces)
     if not logs:
         return
     models = list(surfaces[logs[0]])
     fig, axes = plt.subplots(
-        len(logs), len(models), figsize=(3 * len(models), 2.8 * len(logs)), squeeze=False
+        len(logs),
+        len(models),
+        figsize=(2.6 * len(models) + 1.2, 2.6 * len(logs)),
+        squeeze=False,
+        sharex=True,
+        sharey=True,
+        layout="constrained",
     )
     for i, name in enumerate(logs):
         for j, m in enumerate(models):
@@ -360,9 +375,11 @@ def plot_surfaces(surfaces: dict, out: Path) -> None:
                 vmin=-200,
                 vmax=0,
             )
-            ax.set_title(f"{name}: {NAMES[m]}", fontsize=8)
-            ax.set_xlabel("x offset [m]")
-            ax.set_ylabel("y offset [m]")
+            ax.set_title(f"{name}: {_label(m)}", fontsize=7)
+            if i == len(logs) - 1:
+                ax.set_xlabel("x offset [m]")
+            if j == 0:
+                ax.set_ylabel("y offset [m]")
     fig.colorbar(im, ax=axes, shrink=0.6, label="scan log-likelihood − max [nats]")
     fig.savefig(out / "surfaces.png", dpi=110)
     plt.close(fig)

@@ -36,3 +36,38 @@ def mul0(a: Array, b: Array) -> Array:
     safe = zero | infinite
     prod = jnp.where(safe, 1.0, a) * jnp.where(safe, 1.0, b)
     return jnp.where(zero, 0.0, jnp.where(infinite, jnp.sign(a) * jnp.sign(b) * jnp.inf, prod))
+
+
+def symmetric_eigh_small(a: Array, sweeps: int = 8) -> tuple[Array, Array]:
+    """Eigen-decomposition of a batch of small symmetric matrices ``[..., k, k]`` by
+    cyclic Jacobi rotations, in plain jnp (no LAPACK call).
+
+    For the 3 x 3 / 6 x 6 pose covariances of particle filters. jaxlib's batched LAPACK
+    kernels (``eigh``, ``solve``, ``cholesky``) split the batch over XLA's CPU thread pool
+    and wait on it from inside a pool thread; in a vmapped ``lax.scan`` on a 2-core
+    machine two such kernels can occupy every pool thread and wait for each other for
+    ever (observed here, the XLA CPU Eigen-pool reentrancy wedge). A fixed number of
+    sweeps keeps the loop bounded; 8 sweeps reach float64 round-off for ``k <= 6``
+    (Jacobi converges quadratically).
+
+    Returns:
+        ``(w [..., k], v [..., k, k])`` with ``a = v diag(w) v^T`` (columns of ``v`` the
+        eigenvectors; eigenvalues unsorted).
+    """
+    a = jnp.asarray(a)
+    k = a.shape[-1]
+    v = jnp.broadcast_to(jnp.eye(k, dtype=a.dtype), a.shape)
+    eye = jnp.eye(k, dtype=a.dtype)
+    for _ in range(sweeps):
+        for p in range(k - 1):
+            for q in range(p + 1, k):
+                app, aqq, apq = a[..., p, p], a[..., q, q], a[..., p, q]
+                theta = 0.5 * jnp.arctan2(2 * apq, app - aqq)
+                c, s = jnp.cos(theta), jnp.sin(theta)
+                # rotation in the (p, q) plane that zeroes a_pq in r^T a r
+                r = jnp.broadcast_to(eye, a.shape)
+                r = r.at[..., p, p].set(c).at[..., q, q].set(c)
+                r = r.at[..., p, q].set(-s).at[..., q, p].set(s)
+                a = jnp.swapaxes(r, -1, -2) @ a @ r
+                v = v @ r
+    return jnp.diagonal(a, axis1=-2, axis2=-1), v

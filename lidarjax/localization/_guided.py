@@ -22,6 +22,7 @@ import jaxlie
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 
+from .._math import symmetric_eigh_small
 from ..maps._grid import DecayRateMap
 from ._filter import OdometryMotionModel
 from ._poses import Pose, dof, from_vector
@@ -87,6 +88,17 @@ class GradientGuidedMotion(eqx.Module):
         autodiff: ``"forward"`` (default; ``k`` tangents per particle, about 1.5x cheaper
             for scan likelihoods) or ``"reverse"`` (for surrogates that only define a
             ``custom_vjp``).
+        curvature: use the surrogate's Hessian too (the Laplace approximation of the
+            optimal proposal, Doucet et al. 2000): in whitened coordinates
+            ``u = (xi - chi) / s`` the proposal is ``N(P^-1 g_u, kappa^2 P^-1)`` with
+            precision ``P = I + B`` and ``B`` the positive part (eigenvalues clipped at 0)
+            of ``-diag(s) H diag(s)``, ``H`` the surrogate's Hessian at ``xi = chi``; with
+            ``n_grad_steps > 1`` the mean takes further Newton steps on
+            ``log p + L``. A real scan likelihood is far narrower than the motion noise
+            (tens of nats per 0.1 m), so the plain gradient step ``Sigma g`` overshoots
+            the peak by metres and lands on the shift cap; the curvature scales the
+            step to the peak and narrows the proposal to the posterior's width. Costs
+            ``k`` more forward passes per particle. ``step_scale`` is not used.
     """
 
     motion: OdometryMotionModel
@@ -96,6 +108,7 @@ class GradientGuidedMotion(eqx.Module):
     max_shift_std: float = eqx.field(static=True)
     n_grad_steps: int = eqx.field(static=True)
     autodiff: str = eqx.field(static=True)
+    curvature: bool = eqx.field(static=True)
 
     def __init__(
         self,
@@ -106,6 +119,7 @@ class GradientGuidedMotion(eqx.Module):
         max_shift_std: float = 3.0,
         n_grad_steps: int = 1,
         autodiff: str = "forward",
+        curvature: bool = False,
     ):
         if not isinstance(motion, OdometryMotionModel):
             raise ValueError(f"motion must be an OdometryMotionModel, got {type(motion).__name__}")
@@ -133,6 +147,9 @@ class GradientGuidedMotion(eqx.Module):
         self.max_shift_std = cap
         self.n_grad_steps = int(n_grad_steps)
         self.autodiff = autodiff
+        if not isinstance(curvature, bool):
+            raise ValueError(f"curvature must be a bool, got {curvature!r}")
+        self.curvature = curvature
 
     @property
     def group(self) -> type:
@@ -174,6 +191,64 @@ class GradientGuidedMotion(eqx.Module):
             grad, val = jax.vmap(jax.jacrev(single, argnums=1, has_aux=True))(particles, xi)
         return val, grad
 
+    def _surrogate_derivatives(self, particles: Pose, xi: Array, z):
+        """``L_i``, ``dL_i/dxi`` ``[n k]`` and ``d^2 L_i/dxi^2`` ``[n k k]`` per particle
+        (forward over forward mode)."""
+        group = self.group
+
+        def single(p, x):
+            batch = jax.tree.map(lambda a: a[None], p)
+            out = self.surrogate(batch @ from_vector(x[None], group), z)
+            return jnp.reshape(jnp.asarray(out, x.dtype), (-1,))[0]
+
+        def grad_aux(p, x):
+            g, v = jax.jacfwd(lambda y: (single(p, y), single(p, y)), has_aux=True)(x)
+            return g, (v, g)
+
+        hess, (val, grad) = jax.vmap(jax.jacfwd(grad_aux, argnums=1, has_aux=True))(particles, xi)
+        return val, grad, hess
+
+    def _newton(self, particles: Pose, chi, s, z) -> tuple[Array, Array, Array]:
+        """Whitened proposal mean ``[n k]``, a square root ``S`` ``[n k k]`` of the
+        proposal covariance (``S S^T``) and ``log |det S|`` ``[n]`` (Laplace
+        approximation, see ``curvature``). Small-matrix algebra by Jacobi rotations
+        (:func:`~lidarjax._math.symmetric_eigh_small`), not batched LAPACK: jaxlib's
+        batched LAPACK kernels can deadlock XLA's CPU thread pool inside a vmapped scan."""
+        n, k = particles.parameters().shape[0], s.shape[0]
+        active = s > 0
+        cap = jnp.asarray(self.max_shift_std, s.dtype)
+        outer = active[:, None] & active[None, :]
+
+        def curvature_eig(u):
+            """Eigenvectors ``q`` and eigenvalues ``1 + max(w, 0)`` of the precision
+            ``P = I + B_+``, and the whitened gradient."""
+            val, g, h = self._surrogate_derivatives(particles, chi + s * u, z)
+            g_u = jnp.where(active, s * g, 0.0)
+            b = jnp.where(outer, -(s[:, None] * h * s[None, :]), 0.0)
+            b = 0.5 * (b + jnp.swapaxes(b, -1, -2))
+            ok = (
+                jnp.isfinite(val)
+                & jnp.all(jnp.isfinite(g_u), axis=-1)
+                & jnp.all(jnp.isfinite(b), axis=(-1, -2))
+            )
+            g_u = jnp.where(ok[:, None], g_u, 0.0)
+            b = jnp.where(ok[:, None, None], b, 0.0)
+            w, q = symmetric_eigh_small(b)
+            return q, 1.0 + jnp.maximum(w, 0.0), g_u, ok
+
+        def body(_, u):
+            q, lam, g_u, ok = curvature_eig(u)
+            r = jnp.einsum("nji,nj->ni", q, g_u - u) / lam  # P^-1 (g - u): Newton step
+            u_new = jnp.clip(u + jnp.einsum("nij,nj->ni", q, r), -cap, cap)
+            return jnp.where(ok[:, None] & active, u_new, u)
+
+        u = jax.lax.fori_loop(0, self.n_grad_steps, body, jnp.zeros((n, k), s.dtype))
+        q, lam, _, _ = curvature_eig(jnp.zeros((n, k), s.dtype))  # width at the prior mean
+        kappa = jnp.where(active, jnp.asarray(self.proposal_inflation, s.dtype), 1.0)
+        root = kappa[None, :, None] * q / jnp.sqrt(lam)[:, None, :]  # D Q Lambda^-1/2
+        log_det = jnp.sum(jnp.log(kappa)) - 0.5 * jnp.sum(jnp.log(lam), axis=-1)
+        return u, root, log_det
+
     def _whitened_shift(self, particles: Pose, chi, s, z) -> Float[Array, "n k"]:
         """``u = delta / s`` (0 where ``s = 0``), ``[n k]``."""
         n = particles.parameters().shape[0]
@@ -198,6 +273,8 @@ class GradientGuidedMotion(eqx.Module):
         particle (0 for zero-std components and for particles with a non-finite surrogate
         value or gradient)."""
         chi, s = self._prior(particles, control)
+        if self.curvature:
+            return s * self._newton(particles, chi, s, z)[0]
         return s * self._whitened_shift(particles, chi, s, z)
 
     def propose(
@@ -217,6 +294,15 @@ class GradientGuidedMotion(eqx.Module):
             measurement log-likelihood before normalising the weights.
         """
         chi, s = self._prior(particles, control)
+        if self.curvature:
+            u, root, log_det = self._newton(particles, chi, s, z)
+            e = jax.random.normal(key, u.shape, u.dtype)
+            v = u + jnp.einsum("nij,nj->ni", root, e)  # (xi - chi) / s
+            xi = chi + s * v
+            # log N(v; 0, I) - log N(v; u, C), C = S S^T; inactive components have v = e
+            # (unit variance, zero mean) and cancel
+            log_correction = -0.5 * jnp.sum(v * v, -1) + 0.5 * jnp.sum(e * e, -1) + log_det
+            return particles @ from_vector(xi, self.group), log_correction
         u = self._whitened_shift(particles, chi, s, z)
         e = jax.random.normal(key, u.shape, u.dtype)
         kappa = jnp.asarray(self.proposal_inflation, u.dtype)

@@ -58,6 +58,8 @@ VARIANT_KEYS = {
     "kld",
     "guided",
     "init",
+    "coarse_to_fine",
+    "runs",
 }
 
 
@@ -163,17 +165,23 @@ def _free_mask(stats):
 
 
 def make_filter(v: dict, cache: MapCache, az, cfg, r_min, r_max):
-    m = cache.get(v["model"], float(v.get("smoothing_m", 0.0)))
-    scan = loc.ScanModel(
-        m,
-        az,
-        r_min,
-        r_max,
+    scan_kwargs = dict(
         ray_floor=float(cfg.ray_floor),
         z_rand=float(v.get("z_rand", 0.0)),
         beam_exponent=float(v.get("beam_exponent", 1.0)),
         chunk_size=int(cfg.filter.chunk_size),
     )
+    if v.get("coarse_to_fine"):
+        c2f = dict(v["coarse_to_fine"])
+        sig = [float(x) for x in c2f["sigmas_m"]]
+        scan = loc.CoarseToFineScanModel(
+            [loc.ScanModel(cache.get(v["model"], s), az, r_min, r_max, **scan_kwargs) for s in sig],
+            sig,
+            spread_factor=float(c2f.get("spread_factor", 1.0)),
+        )
+    else:
+        m = cache.get(v["model"], float(v.get("smoothing_m", 0.0)))
+        scan = loc.ScanModel(m, az, r_min, r_max, **scan_kwargs)
     motion = loc.OdometryMotionModel(
         sigma=list(cfg.filter.motion_sigma),
         alpha=[list(r) for r in cfg.filter.motion_alpha],
@@ -446,7 +454,7 @@ def main(cfg: DictConfig) -> None:
         res["variants"] = {}
         for vn, v in tqdm(variants.items(), desc=name, leave=False):
             res["variants"][vn] = run_variant(
-                v, cache, az, seq, key, cfg, r_min, r_max, int(cfg.filter.runs)
+                v, cache, az, seq, key, cfg, r_min, r_max, int(v.get("runs", cfg.filter.runs))
             )
         if glob and cfg.global_localization.runs > 0:
             res["global"] = {

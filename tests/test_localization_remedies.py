@@ -4,6 +4,7 @@ scan likelihoods of ``ScanModel``. References are brute-force NumPy computations
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import jaxlie
 import numpy as np
@@ -196,3 +197,51 @@ def test_scan_model_remedy_bad_arguments(scan):
             ScanModel(m, AZ, R_MIN, R_MAX, beam_exponent=bad)
     with pytest.raises(ValueError, match="z_rand"):
         ScanModel(m, AZ, R_MIN, float("inf"), z_rand=0.1)
+
+
+def test_coarse_to_fine_uses_the_level_of_the_spread(scan):
+    """Each call equals the ScanModel of the level picked by the particles' spread (RMS
+    distance from their mean): coarse for a wide cloud, the finest for a tight one; under
+    vmap each filter gets its own level."""
+    from lidarjax.localization import CoarseToFineScanModel, coarse_to_fine_scan_model
+
+    st = scan["stats"]
+    sig = (0.0, 0.25, 0.5)
+    c2f = coarse_to_fine_scan_model(st, maps.decay_rate_map, sig, AZ, R_MIN, R_MAX, ray_floor=-8.0)
+    assert isinstance(c2f, CoarseToFineScanModel)
+    ranges = jnp.asarray(scan["ranges"])
+    center = np.array([1.5, 1.4, 0.3])
+    rng = np.random.default_rng(5)
+    for spread, want in ((0.05, 0), (0.3, 1), (0.8, 2)):
+        v = center + rng.normal(0.0, 1.0, (64, 3)) * [1, 1, 0.1]
+        xy = v[:, :2] - v[:, :2].mean(0)
+        v[:, :2] = center[:2] + xy * spread / np.sqrt(np.mean(np.sum(xy**2, -1)))
+        p = from_vector(jnp.asarray(v))
+        assert int(c2f.level(p)) == want
+        ref = ScanModel(
+            maps.decay_rate_map(maps.smooth_stats(st, sig[want])), AZ, R_MIN, R_MAX, ray_floor=-8.0
+        )
+        np.testing.assert_allclose(
+            np.asarray(c2f(p, ranges)), np.asarray(ref(p, ranges)), rtol=1e-12
+        )
+    # batched over two filters with different spreads
+    tight = from_vector(jnp.asarray(center + rng.normal(0, 0.01, (64, 3))))
+    wide = from_vector(jnp.asarray(center + rng.normal(0, 0.6, (64, 3)) * [1, 1, 0.1]))
+    both = jax.tree.map(lambda a, b: jnp.stack([a, b]), tight, wide)
+    got = jax.vmap(lambda p: c2f(p, ranges))(both)
+    np.testing.assert_allclose(np.asarray(got[0]), np.asarray(c2f(tight, ranges)), rtol=1e-12)
+    np.testing.assert_allclose(np.asarray(got[1]), np.asarray(c2f(wide, ranges)), rtol=1e-12)
+    with pytest.raises(ValueError, match="sigmas_m"):
+        coarse_to_fine_scan_model(st, maps.decay_rate_map, (0.2, 0.1), AZ, R_MIN, R_MAX)
+    with pytest.raises(ValueError, match="spread_factor"):
+        coarse_to_fine_scan_model(
+            st, maps.decay_rate_map, (0.0, 0.1), AZ, R_MIN, R_MAX, spread_factor=0
+        )
+    with pytest.raises(ValueError, match="share"):
+        CoarseToFineScanModel(
+            [
+                ScanModel(maps.decay_rate_map(st), AZ, R_MIN, R_MAX),
+                ScanModel(maps.gamma_posterior(st), AZ, R_MIN, R_MAX),
+            ],
+            (0.0, 0.1),
+        )

@@ -35,9 +35,11 @@ from ._landmarks import (
     sliding_window_filter,
 )
 from ._poses import circular_mean, from_vector, relative_motion, take, to_vector, weighted_mean
-from ._scan import ScanModel
+from ._scan import CoarseToFineScanModel, ScanModel, coarse_to_fine_scan_model
 
 __all__ = [
+    "CoarseToFineScanModel",
+    "coarse_to_fine_scan_model",
     "GradientGuidedMotion",
     "SmoothScanSurrogate",
     "smooth_scan_surrogate",

@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import jaxlie
 import numpy as np
-from jaxtyping import Array, ArrayLike, Float
+from jaxtyping import Array, ArrayLike, Float, Int
 
 from ..maps._grid import EndpointMap
+from ..maps._smoothing import smooth_stats
 from ..rays import HIT, SUB, from_scan
 from ..raytrace._native import check_backend, check_threads
 from ..sensor_models._common import gather, safe_log
@@ -180,3 +182,112 @@ def _likelihood_field(m: EndpointMap, rays, r_max: float) -> Array:
     f = jnp.where(inside, m.z_hit * gather(m.hit_field(), cell), 0.0) + rand
     hit = safe_log(1.0 - m.p_out) + safe_log(f)
     return jnp.where(rays.kind == HIT, hit, safe_log(m.p_out))
+
+
+class CoarseToFineScanModel(eqx.Module):
+    """A scan likelihood whose map resolution follows the particle cloud: the measurement
+    update uses the map smoothed by the largest ``sigmas_m[l]`` not above
+    ``spread_factor`` times the cloud's spread, so a filter that does not yet know where
+    it is weighs with a wide basin and a localized one with the sharp map.
+
+    Build the levels from kernel-smoothed statistics (:func:`~lidarjax.maps.smooth_stats`)
+    with :func:`coarse_to_fine_scan_model`. The spread is the root-mean-square distance of
+    the particle positions from their mean (m, unweighted: after resampling all weights
+    are equal). Like tempering, this changes the measurement model while the filter is
+    uncertain (the posterior is that of a coarser map); once the spread is below
+    ``sigmas_m[1] / spread_factor`` the filter uses the finest map, ``sigmas_m[0]``.
+
+    One level is evaluated per call (the level's map is gathered from the stacked maps,
+    so under ``vmap`` each filter uses its own level without evaluating the others).
+
+    Attributes:
+        stacked: the per-level :class:`ScanModel` s stacked along a leading ``[L]`` axis.
+        sigmas_m: ``[L]`` increasing smoothing widths (m), ``sigmas_m[0]`` the finest.
+        spread_factor: level ``l`` is used while ``spread >= sigmas_m[l] / spread_factor``.
+    """
+
+    stacked: ScanModel
+    sigmas_m: tuple[float, ...] = eqx.field(static=True)
+    spread_factor: float = eqx.field(static=True)
+
+    def __init__(self, levels, sigmas_m, spread_factor: float = 1.0):
+        levels = list(levels)
+        sig = tuple(float(x) for x in sigmas_m)
+        if not levels or not all(isinstance(m, ScanModel) for m in levels):
+            raise ValueError("levels must be a non-empty sequence of ScanModel")
+        if len(sig) != len(levels):
+            raise ValueError(f"sigmas_m must have one width per level ({len(levels)}), got {sig}")
+        if any(not np.isfinite(x) or x < 0 for x in sig) or any(
+            b <= a for a, b in zip(sig, sig[1:])
+        ):
+            raise ValueError(f"sigmas_m must be finite, >= 0 and increasing, got {sig}")
+        if not (np.isfinite(spread_factor) and spread_factor > 0):
+            raise ValueError(f"spread_factor must be finite and > 0, got {spread_factor!r}")
+        statics = {
+            (
+                type(m.map),
+                m.r_min,
+                m.r_max,
+                m.ray_floor,
+                m.z_rand,
+                m.beam_exponent,
+                m.endpoint_normalized,
+                m.chunk_size,
+                m.backend,
+                m.threads,
+            )
+            for m in levels
+        }
+        shapes = {tuple(m.map.spec.shape) for m in levels}
+        if len(statics) != 1 or len(shapes) != 1:
+            raise ValueError("levels must share the map type, grid and ScanModel settings")
+        self.stacked = jax.tree.map(lambda *x: jnp.stack(x), *levels)
+        self.sigmas_m = sig
+        self.spread_factor = float(spread_factor)
+
+    def level(self, particles: jaxlie.SE2) -> Int[Array, ""]:
+        """Index of the level used for these particles (int32 scalar)."""
+        t = particles.translation()
+        spread = jnp.sqrt(jnp.mean(jnp.sum((t - jnp.mean(t, axis=0)) ** 2, axis=-1)))
+        thresholds = jnp.asarray(self.sigmas_m[1:], t.dtype) / self.spread_factor
+        return jnp.sum(spread >= thresholds).astype(jnp.int32)
+
+    def _at(self, level) -> ScanModel:
+        return jax.tree.map(lambda a: a[level], self.stacked)
+
+    def ray_log_likelihoods(self, particles: jaxlie.SE2, ranges) -> Float[Array, "n b"]:
+        """Per-ray log-likelihoods ``[n b]`` (nats) of the level chosen for ``particles``."""
+        return self._at(self.level(particles)).ray_log_likelihoods(particles, ranges)
+
+    def __call__(self, particles: jaxlie.SE2, ranges) -> Float[Array, " n"]:
+        return jnp.sum(self.ray_log_likelihoods(particles, ranges), axis=-1)
+
+
+def coarse_to_fine_scan_model(
+    stats,
+    model_fn,
+    sigmas_m,
+    azimuths,
+    r_min: float,
+    r_max: float,
+    *,
+    spread_factor: float = 1.0,
+    **scan_kwargs,
+) -> CoarseToFineScanModel:
+    """A :class:`CoarseToFineScanModel` from grid statistics: level ``l`` is
+    ``ScanModel(model_fn(smooth_stats(stats, sigmas_m[l])), azimuths, r_min, r_max,
+    **scan_kwargs)``.
+
+    Args:
+        stats: the map's :class:`~lidarjax.raytrace.GridStats`.
+        model_fn: ``stats -> map``, e.g. :func:`~lidarjax.maps.decay_rate_map` or
+            :func:`~lidarjax.maps.gamma_posterior`.
+        sigmas_m: increasing smoothing widths (m), e.g. ``(0.0, 0.1, 0.2)``.
+        azimuths, r_min, r_max, scan_kwargs: as for :class:`ScanModel`.
+        spread_factor: see :class:`CoarseToFineScanModel`.
+    """
+    levels = [
+        ScanModel(model_fn(smooth_stats(stats, s)), azimuths, r_min, r_max, **scan_kwargs)
+        for s in sigmas_m
+    ]
+    return CoarseToFineScanModel(levels, sigmas_m, spread_factor)

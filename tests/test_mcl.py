@@ -83,3 +83,40 @@ def test_mcl_experiment_small(tmp_path):
     for f in ("results.md", "errors.png", "trajectories.png"):
         assert (tmp_path / f).stat().st_size > 0
     assert "| intel* |" in (tmp_path / "results.md").read_text()
+
+
+@pytest.mark.slow
+def test_mcl_remedies_experiment_small(tmp_path):
+    """The remedies experiment end to end on a short Intel segment: diagnosis, a few
+    variants (incl. coarse-to-fine and augmented MCL) and a small global localization."""
+    res = run_experiment(
+        "mcl_remedies",
+        tmp_path,
+        "logs=[intel]",
+        "filter.runs=2",
+        "filter.max_steps=10",
+        "diagnose.models=[dec,end,dec@0.1]",
+        "only=[end,dec,fmp_dec+c2f,dec+augmented,dec+zrand0.05]",
+        "global_localization.runs=1",
+        "~global_localization.variants",
+        "+global_localization.variants={end:{model:end,particles:500},"
+        "c2f:{model:fmp_dec,particles:500,coarse_to_fine:{sigmas_m:[0.0,0.1,0.2]}}}",
+    )
+    r = res["logs"]["intel"]
+    d = r["diagnosis"]
+    assert set(d) == {"dec", "end", "dec@0.1"}
+    # the traced model is sharper than the likelihood field and smoothing widens it
+    assert d["dec"]["fall_nats"]["0.1 m"] > 5 * d["end"]["fall_nats"]["0.1 m"]
+    assert d["dec@0.1"]["fall_nats"]["0.1 m"] < d["dec"]["fall_nats"]["0.1 m"]
+    assert d["dec"]["below_floor_fraction"] > d["dec@0.1"]["below_floor_fraction"]
+    assert set(r["variants"]) == {"end", "dec", "fmp_dec+c2f", "dec+augmented", "dec+zrand0.05"}
+    for v in r["variants"].values():
+        assert v["runs"] == 2 and 0 <= v["converged_runs"] <= 2
+        assert len(v["curve"]) == 10 and np.all(np.isfinite(v["curve"]))
+        assert v["ms_per_step"] > 0
+    assert set(r["global"]) == {"end", "c2f"}
+    assert r["global"]["end"]["particles"] == 500
+    text = (tmp_path / "results.md").read_text()
+    assert "| fmp_dec+c2f |" in text and "Global localization" in text
+    for f in ("surfaces.png", "errors.png"):
+        assert (tmp_path / f).stat().st_size > 0

@@ -330,24 +330,37 @@ def write_tables(results: dict, models: list[str]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def plot(curves: dict, gts: dict, out: Path) -> None:
-    names = list(curves)
+def error_grid(series: dict, path: Path, ylabel: str, legend_size: int = 7) -> None:
+    """One log-scale panel per log (``series[log][label] = [T]`` errors), saved to path."""
+    names = list(series)
     cols = min(4, len(names))
     rows = -(-len(names) // cols)
     fig, axes = plt.subplots(rows, cols, figsize=(4 * cols, 3 * rows), squeeze=False)
     for ax, name in zip(axes.flat, names):
-        for m, c in curves[name].items():
-            ax.plot(c["pos"], label=NAMES[m], lw=1)
+        for label, curve in series[name].items():
+            ax.plot(curve, label=label, lw=1)
         ax.set_yscale("log")
         ax.set_title(name)
         ax.set_xlabel("step")
-        ax.set_ylabel("position error [m]")
+        ax.set_ylabel(ylabel)
     for ax in list(axes.flat)[len(names) :]:
         ax.axis("off")
-    axes.flat[0].legend(fontsize=7)
+    axes.flat[0].legend(fontsize=legend_size)
     fig.tight_layout()
-    fig.savefig(out / "errors.png", dpi=120)
+    fig.savefig(path, dpi=120)
     plt.close(fig)
+
+
+def plot(curves: dict, gts: dict, out: Path) -> None:
+    names = list(curves)
+    cols = min(4, len(names))
+    rows = -(-len(names) // cols)
+    error_grid(
+        {name: {NAMES[m]: c["pos"] for m, c in curves[name].items()} for name in names},
+        out / "errors.png",
+        "position error [m]",
+        legend_size=7,
+    )
     fig, axes = plt.subplots(rows, cols, figsize=(4 * cols, 4 * rows), squeeze=False)
     for ax, name in zip(axes.flat, names):
         gt = gts[name]

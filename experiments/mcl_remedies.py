@@ -40,7 +40,15 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from hydra.core.hydra_config import HydraConfig  # noqa: E402
-from mcl import NAMES, build_stats, initial_states, model_from_stats, prepare, wrap  # noqa: E402
+from mcl import (  # noqa: E402
+    NAMES,
+    build_stats,
+    error_grid,
+    initial_states,
+    model_from_stats,
+    prepare,
+    wrap,
+)
 from omegaconf import DictConfig, OmegaConf  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
@@ -394,23 +402,12 @@ def plot_surfaces(surfaces: dict, out: Path) -> None:
 
 
 def plot_errors(results: dict, out: Path) -> None:
-    logs = list(results)
-    cols = min(4, len(logs))
-    rows = -(-len(logs) // cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(4 * cols, 3 * rows), squeeze=False)
-    for ax, name in zip(axes.flat, logs):
-        for vn, x in results[name]["variants"].items():
-            ax.plot(x["curve"], lw=1, label=vn)
-        ax.set_yscale("log")
-        ax.set_title(name)
-        ax.set_xlabel("step")
-        ax.set_ylabel("mean position error [m]")
-    for ax in list(axes.flat)[len(logs) :]:
-        ax.axis("off")
-    axes.flat[0].legend(fontsize=5)
-    fig.tight_layout()
-    fig.savefig(out / "errors.png", dpi=110)
-    plt.close(fig)
+    error_grid(
+        {name: {vn: x["curve"] for vn, x in r["variants"].items()} for name, r in results.items()},
+        out / "errors.png",
+        "mean position error [m]",
+        legend_size=5,
+    )
 
 
 def write_outputs(out: Path, cfg, results, surfaces, runtime_s) -> None:

@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 from helpers import finite_difference
 from scipy import stats
+from test_localization import GaussianPosition
 
 from lidarjax import maps
 from lidarjax.localization import (
@@ -384,16 +385,6 @@ def _has_proposal_hook() -> bool:
 
 
 HOOK = _has_proposal_hook()
-
-
-class GaussianPosition(eqx.Module):
-    """Measurement z = (x, y) + N(0, s^2 I)."""
-
-    s: jax.Array
-
-    def __call__(self, particles, z):
-        d = particles.translation() - z
-        return -0.5 * jnp.sum(d * d, axis=-1) / self.s**2
 
 
 SIG_Q, SIG_Z, SIG_0 = 0.1, 0.05, 0.15  # motion, measurement and prior std (m)

@@ -172,17 +172,20 @@ class GradientGuidedMotion(eqx.Module):
             raise ValueError(f"control must have shape ({k},), got {chi.shape}")
         return chi, self.motion.std(chi).astype(dtype)
 
+    def _single_value(self, p, x, z) -> Array:
+        """Surrogate log-likelihood ``[]`` of one ancestor ``p`` moved by increment ``x``."""
+        batch = jax.tree.map(lambda a: a[None], p)
+        out = self.surrogate(batch @ from_vector(x[None], self.group), z)
+        return jnp.reshape(jnp.asarray(out, x.dtype), (-1,))[0]
+
     def _surrogate_value_and_grad(self, particles: Pose, xi: Array, z) -> tuple[Array, Array]:
         """``L_i(xi_i)`` ``[n]`` and ``dL_i/dxi_i`` ``[n k]``, one particle at a time (so
         each gradient is exactly its own particle's). Forward mode: ``k`` (3 or 6) tangents
         of a scalar are cheaper than a reverse pass through the ray sums; reverse mode on
         request)."""
-        group = self.group
 
         def single(p, x):
-            batch = jax.tree.map(lambda a: a[None], p)
-            out = self.surrogate(batch @ from_vector(x[None], group), z)
-            val = jnp.reshape(jnp.asarray(out, x.dtype), (-1,))[0]
+            val = self._single_value(p, x, z)
             return val, val
 
         if self.autodiff == "forward":
@@ -194,12 +197,9 @@ class GradientGuidedMotion(eqx.Module):
     def _surrogate_derivatives(self, particles: Pose, xi: Array, z):
         """``L_i``, ``dL_i/dxi`` ``[n k]`` and ``d^2 L_i/dxi^2`` ``[n k k]`` per particle
         (forward over forward mode)."""
-        group = self.group
 
         def single(p, x):
-            batch = jax.tree.map(lambda a: a[None], p)
-            out = self.surrogate(batch @ from_vector(x[None], group), z)
-            return jnp.reshape(jnp.asarray(out, x.dtype), (-1,))[0]
+            return self._single_value(p, x, z)
 
         def grad_aux(p, x):
             g, v = jax.jacfwd(lambda y: (single(p, y), single(p, y)), has_aux=True)(x)

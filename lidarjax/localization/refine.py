@@ -23,7 +23,6 @@ the generic forward model :func:`~lidarjax.maps.field_log_likelihood`;
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Sequence
 
 import equinox as eqx
@@ -38,6 +37,7 @@ from .._math import log1mexp
 from ..maps._dct import DCTMap
 from ..maps._field import AbstractDecayRateField, field_log_likelihood
 from ..maps._grid import DecayRateMap
+from ..maps._smoothing import gaussian_kernel_1d
 from ..rays import HIT, SUB, check_finite_nonnegative, classify, from_scan
 from ..raytrace import box_exit
 
@@ -61,10 +61,8 @@ def blur(values: Float[Array, "nx ny"], sigma_cells: float) -> Float[Array, "nx 
         raise ValueError(f"sigma_cells must be finite and >= 0, got {sigma_cells!r}")
     if sigma_cells == 0:
         return values
-    half = max(1, math.ceil(3 * sigma_cells))
-    x = np.arange(-half, half + 1)
-    k = np.exp(-0.5 * (x / sigma_cells) ** 2)
-    k = jnp.asarray(k / k.sum(), values.dtype)
+    k = jnp.asarray(gaussian_kernel_1d(sigma_cells, 3.0), values.dtype)
+    half = (k.shape[0] - 1) // 2
     out = values
     for axis in (0, 1):
         pad = [(0, 0), (0, 0)]

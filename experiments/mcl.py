@@ -229,6 +229,7 @@ def prepare(name: str, cfg: DictConfig, failures: bool = False):
         "gt": log.poses[odd[1:]],
         "scan_idx": odd[1:],
         "start": log.poses[odd[0]],
+        "z0": jnp.asarray(log.ranges_m[odd[0]][beams]),  # the start scan (global init)
     }
     return log, r_min, r_max, az, seq, key
 

@@ -20,6 +20,7 @@ from ._filter import (
     stratified_resample,
     systematic_resample,
 )
+from ._global import PoseLattice, init_from_scan, lattice_scores, pose_lattice
 from ._guided import GradientGuidedMotion, SmoothScanSurrogate, smooth_scan_surrogate
 from ._landmarks import (
     PoleLookup,
@@ -38,6 +39,10 @@ from ._poses import circular_mean, from_vector, relative_motion, take, to_vector
 from ._scan import CoarseToFineScanModel, ScanModel, coarse_to_fine_scan_model
 
 __all__ = [
+    "PoseLattice",
+    "pose_lattice",
+    "init_from_scan",
+    "lattice_scores",
     "CoarseToFineScanModel",
     "coarse_to_fine_scan_model",
     "GradientGuidedMotion",

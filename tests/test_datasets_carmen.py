@@ -325,3 +325,59 @@ def test_empty_log(tmp_path, text):
 def test_missing_file(tmp_path):
     with pytest.raises(FileNotFoundError):
         load_carmen(tmp_path / "nope.log.gz")
+
+
+# --------------------------------------------------------------------------- strict numbers
+
+
+@pytest.mark.parametrize(
+    ("bad_line", "fragment"),
+    [
+        ("FLASER 3 1.0 1_5 3.0 0 0 0 0 0 0 1.0 host 1.0", "1_5"),
+        ("FLASER 3 1.0 2.0 3.0 0 0 0_1 0 0 0 1.0 host 1.0", "0_1"),
+        ("FLASER 3 1.0 2.0 3.0 0 0 0 0 0 0 1.0 host 1_0", "1_0"),
+        ("FLASER 0_3 1.0 2.0 3.0 0 0 0 0 0 0 1.0 host 1.0", "integer"),
+        ("FLASER +3 1.0 2.0 3.0 0 0 0 0 0 0 1.0 host 1.0", "integer"),
+        ("FLASER 3 1.0 2.0\xa03.0 0 0 0 0 0 0 1.0 host 1.0", "tokens"),  # NBSP is no separator
+        ("FLASER 3 1.0 2.0 3.0\x1c 0 0 0 0 0 0 1.0 host 1.0", "non-numeric"),
+        ("FLASER 3 1.0 2.0 0x3 0 0 0 0 0 0 1.0 host 1.0", "0x3"),
+    ],
+)
+def test_strict_numbers_in_flaser(tmp_path, bad_line, fragment):
+    text = "\n".join([GOOD, bad_line, GOOD])
+    path = tmp_path / "strict.log"
+    path.write_bytes(text.encode("latin-1"))
+    with pytest.raises(DatasetFormatError) as info:
+        load_carmen(path)
+    assert info.value.line == 2
+    assert f"{path}:2:" in str(info.value)
+    assert fragment in str(info.value)
+
+
+@pytest.mark.parametrize(
+    "param",
+    [
+        "PARAM laser_front_laser_resolution 0_5 nohost 0",
+        "PARAM laser_front_laser_resolution 1e308 nohost 0",  # infinite field of view
+        "PARAM laser_front_laser_resolution 400 nohost 0",
+        "PARAM laser_front_laser_resolution 2 nohost 0",  # 2 deg * 360 gaps = 720 deg
+        "PARAM laser_front_laser_resolution inf nohost 0",
+        "PARAM robot_front_laser_max 5_0 nohost 0",
+    ],
+)
+def test_bad_resolution_or_range_param(tmp_path, param):
+    scan = "FLASER 361 " + " ".join(["1.0"] * 361) + " 0 0 0 0 0 0 1.0 host 1.0"
+    text = "\n".join(["# log", scan, param, scan])
+    path = _write(tmp_path, text)
+    with pytest.raises(DatasetFormatError) as info:
+        load_carmen(path)
+    assert info.value.line == 3
+    assert f"{path}:3:" in str(info.value)
+
+
+def test_full_circle_resolution_is_accepted(tmp_path):
+    scan = "FLASER 361 " + " ".join(["1.0"] * 361) + " 0 0 0 0 0 0 1.0 host 1.0"
+    text = "\n".join(["PARAM laser_front_laser_resolution 1.0 nohost 0", scan])
+    log = load_carmen(_write(tmp_path, text))
+    assert np.all(np.isfinite(log.azimuths_rad))
+    assert log.fov_rad == pytest.approx(2 * math.pi)

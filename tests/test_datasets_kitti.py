@@ -126,3 +126,30 @@ def test_bad_times(tmp_path):
         load_kitti_times(path)
     path.write_text("0.0\n0.5\n1.0\n")
     np.testing.assert_array_equal(load_kitti_times(path), [0.0, 0.5, 1.0])
+
+
+@pytest.mark.parametrize(
+    ("bad", "fragment"),
+    [
+        ("1 0 0 0 0 1 0 0 0 0 1 1_0", "1_0"),
+        ("1 0 0 0 0 1 0 0 0 0 1 0x1", "0x1"),
+        ("1 0 0 0 0 1 0 0 0 0 1\xa00", "11 values"),  # NBSP does not separate values
+        ("1 0 0 0 0 1 0 0 0 0 1 1e999", "NaN or infinite"),
+    ],
+)
+def test_strict_numbers_in_poses(tmp_path, bad, fragment):
+    good = _pose_line(np.eye(3), [0, 0, 0])
+    path = tmp_path / "poses.txt"
+    path.write_bytes("\n".join([good, bad, good]).encode("latin-1"))
+    with pytest.raises(DatasetFormatError) as info:
+        load_kitti_poses(path)
+    assert info.value.line == 2 and f"{path}:2:" in str(info.value)
+    assert fragment in str(info.value)
+
+
+def test_strict_numbers_in_times(tmp_path):
+    path = tmp_path / "times.txt"
+    for bad in ("0_1", "0.1\r0.2", "\x850.1"):
+        path.write_bytes(b"0.0\n" + bad.encode("latin-1") + b"\n0.3\n")
+        with pytest.raises(DatasetFormatError, match=":2:"):
+            load_kitti_times(path)

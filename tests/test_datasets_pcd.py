@@ -336,3 +336,144 @@ def test_truncated_lzf_stream(tmp_path: Path) -> None:
     with pytest.raises(DatasetFormatError, match="LZF") as info:
         read_pcd(path)
     assert str(path) in str(info.value)
+
+
+# ------------------------------------------------------------------------------------------
+# Header/payload size mismatches and header sanity (nothing beyond POINTS is ignored)
+# ------------------------------------------------------------------------------------------
+
+
+def _payload_start(raw: bytes) -> int:
+    return raw.index(b"\nDATA") + raw[raw.index(b"\nDATA") + 1 :].index(b"\n") + 2
+
+
+@pytest.mark.parametrize("data", ["binary", "binary_compressed"])
+def test_trailing_byte_rejected(tmp_path: Path, data: str) -> None:
+    path = _write(tmp_path, data)
+    path.write_bytes(path.read_bytes() + b"\x00")
+    with pytest.raises(DatasetFormatError) as info:
+        read_pcd(path)
+    assert str(path) in str(info.value)
+
+
+def test_inserted_byte_in_binary_payload_rejected(tmp_path: Path) -> None:
+    path = _write(tmp_path, "binary")
+    raw = path.read_bytes()
+    cut = _payload_start(raw) + 7
+    path.write_bytes(raw[:cut] + b"\x01" + raw[cut:])
+    with pytest.raises(DatasetFormatError, match="binary data") as info:
+        read_pcd(path)
+    assert str(path) in str(info.value)
+
+
+def test_ascii_duplicated_or_extra_line_rejected(tmp_path: Path) -> None:
+    path = _write(tmp_path, "ascii")
+    lines = path.read_text().split("\n")
+    data_index = next(i for i, line in enumerate(lines) if line.startswith("DATA"))
+    dup = lines[: data_index + 4] + [lines[data_index + 3]] + lines[data_index + 4 :]
+    path.write_text("\n".join(dup))
+    with pytest.raises(DatasetFormatError, match="more than POINTS") as info:
+        read_pcd(path)
+    assert str(path) in str(info.value)
+    assert info.value.line == len(lines)  # the first line after the 20 points (1-based)
+    path.write_text("\n".join(lines) + "1 2 3\n")
+    with pytest.raises(DatasetFormatError, match="more than POINTS"):
+        read_pcd(path)
+    # Blank lines and trailing whitespace after the points are not data.
+    path.write_text("\n".join(lines) + "\n \t\r\n\n")
+    assert read_pcd(path).num_points == 20
+
+
+def test_binary_compressed_size_fields(tmp_path: Path) -> None:
+    path = _write(tmp_path, "binary_compressed")
+    raw = path.read_bytes()
+    start = _payload_start(raw)
+    csize, usize = struct.unpack("<II", raw[start : start + 8])
+    payload = raw[start + 8 :]
+    assert len(payload) == csize
+    cases = {
+        "compressed size": struct.pack("<II", csize - 1, usize) + payload,  # extra bytes
+        "compressed size ": struct.pack("<II", csize + 1, usize) + payload,  # truncated
+        "uncompressed size": struct.pack("<II", csize, usize + 4) + payload,
+        "LZF": struct.pack("<II", csize + 2, usize) + payload + b"\x00\x00",
+    }
+    for needle, body in cases.items():
+        path.write_bytes(raw[:start] + body)
+        with pytest.raises(DatasetFormatError, match=needle.strip()) as info:
+            read_pcd(path)
+        assert str(path) in str(info.value)
+
+
+def _binary_file(tmp_path: Path, header: str, payload: bytes = b"") -> Path:
+    path = tmp_path / "h.pcd"
+    path.write_bytes(header.encode("latin-1") + payload)
+    return path
+
+
+@pytest.mark.parametrize("points", [1, 0])
+def test_huge_count_rejected(tmp_path: Path, points: int) -> None:
+    header = (
+        "VERSION 0.7\nFIELDS x\nSIZE 4\nTYPE F\nCOUNT 3000000000\n"
+        f"WIDTH {points}\nHEIGHT 1\nPOINTS {points}\nDATA binary\n"
+    )
+    path = _binary_file(tmp_path, header, bytes(64))
+    with pytest.raises(DatasetFormatError, match="COUNT") as info:
+        read_pcd(path)
+    assert str(path) in str(info.value)
+
+
+@pytest.mark.parametrize(
+    ("old", "new", "needle"),
+    [
+        ("WIDTH 5\n", "WIDTH 5_0\n", "WIDTH"),
+        ("SIZE 4 4 4", "SIZE 4 4 +4", "SIZE"),
+        ("COUNT 1 1 1", "COUNT 1 1_0 1", "COUNT"),
+        ("VIEWPOINT 0", "VIEWPOINT 0_0", "VIEWPOINT"),
+        ("VIEWPOINT 0", "VIEWPOINT nan", "VIEWPOINT"),
+        ("FIELDS x y z", "FIELDS x y\xa0z", "FIELDS"),
+        ("FIELDS x y z", "FIELDS x y \xffz", "field name"),
+        ("DATA binary", "DATA\xa0binary", "DATA"),
+    ],
+)
+def test_strict_header_values(tmp_path: Path, old: str, new: str, needle: str) -> None:
+    path = _write(tmp_path, "binary")
+    raw = path.read_bytes()
+    assert old.encode() in raw
+    path.write_bytes(raw.replace(old.encode(), new.encode("latin-1"), 1))
+    with pytest.raises(DatasetFormatError, match=needle) as info:
+        read_pcd(path)
+    assert str(path) in str(info.value)
+
+
+def test_absurd_dimensions_rejected(tmp_path: Path) -> None:
+    header = f"FIELDS x\nSIZE 4\nTYPE F\nWIDTH {10**30}\nHEIGHT 0\nPOINTS 0\nDATA ascii\n"
+    path = _binary_file(tmp_path, header)
+    with pytest.raises(DatasetFormatError, match="WIDTH") as info:
+        read_pcd(path)
+    assert str(path) in str(info.value)
+
+
+@pytest.mark.parametrize(
+    ("token", "needle"),
+    [("1_5", "1_5"), ("1e39", "out of range"), ("1e400", "out of range"), ("0x10", "0x10")],
+)
+def test_ascii_strict_float_tokens(tmp_path: Path, token: str, needle: str) -> None:
+    path = _write(tmp_path, "ascii")
+    text = path.read_text()
+    path.write_text(text.replace("\n1 2 3\n", f"\n{token} 2 3\n"))
+    with pytest.raises(DatasetFormatError, match=needle) as info:
+        read_pcd(path)
+    assert str(path) in str(info.value) and info.value.line is not None
+
+
+def test_ascii_integer_and_nonfinite_tokens(tmp_path: Path) -> None:
+    header = "FIELDS x n\nSIZE 4 1\nTYPE F U\nWIDTH 3\nHEIGHT 1\nPOINTS 3\nDATA ascii\n"
+    path = _binary_file(tmp_path, header + "nan 1\n-inf +2\nInfinity 255\n")
+    cloud = read_pcd(path)
+    assert np.isnan(cloud["x"][0, 0]) and cloud["x"][0, 1] == -np.inf
+    np.testing.assert_array_equal(cloud["n"], [[1, 2, 255]])
+    for bad in ("256", "7.0", "1_0", "-1"):
+        path = _binary_file(tmp_path, header + f"1 1\n2 {bad}\n3 3\n")
+        with pytest.raises(DatasetFormatError, match="'n'") as info:
+            read_pcd(path)
+        assert info.value.line == 9

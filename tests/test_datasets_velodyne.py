@@ -434,3 +434,57 @@ def test_nclt_ground_truth_se2():
     np.testing.assert_allclose(east, [0.0, -1.0, -np.pi / 2])
     with pytest.raises(ValueError, match="xyz_rpy"):
         nclt_ground_truth_se2(np.zeros((3, 7)))
+
+
+# ------------------------------------------------------------------------------------------
+# Declared sizes and strict numbers
+# ------------------------------------------------------------------------------------------
+
+
+def test_nclt_hits_huge_num_hits_rejected_before_reading(tmp_path):
+    # 24-byte header announcing 2**32 - 1 hits (34 GB), then 16 bytes: a 40-byte file.
+    header = struct.pack("<4HIQ4x", 44444, 44444, 44444, 44444, 2**32 - 1, 1326030975726043)
+    path = tmp_path / "velodyne_hits.bin"
+    path.write_bytes(header + bytes(16))
+    with pytest.raises(DatasetFormatError, match="4294967295 hits") as info:
+        read_nclt_velodyne_hits(path)
+    assert str(path) in str(info.value)
+    assert "byte offset 0" in str(info.value)
+
+
+@pytest.mark.parametrize(
+    ("row", "fragment"),
+    [
+        ("99999999999999999999,0,0,0,0,0,0", "int64"),
+        ("1_5,0,0,0,0,0,0", "1_5"),
+        ("15,0,0,0_1,0,0,0", "0_1"),
+        ("15,0,0,0x1,0,0,0", "0x1"),
+        ("15.5,0,0,0,0,0,0", "integer"),
+        ("15,0,0,inf,0,0,0", "infinite"),
+        ("15,0,0,\xa01,0,0,0", "bad value"),
+    ],
+)
+def test_nclt_ground_truth_strict_values(tmp_path, row, fragment):
+    path = tmp_path / "gt.csv"
+    path.write_bytes(("utime,x,y,z,roll,pitch,yaw\n1,0,0,0,0,0,0\n" + row + "\n").encode("latin-1"))
+    with pytest.raises(DatasetFormatError, match="gt.csv:3") as info:
+        read_nclt_ground_truth(path)
+    assert fragment in str(info.value)
+
+
+def test_nclt_ground_truth_one_header_line_only(tmp_path):
+    path = tmp_path / "gt.csv"
+    path.write_text("utime,x,y,z,roll,pitch,yaw\n" * 2 + "1,0,0,0,0,0,0\n")
+    with pytest.raises(DatasetFormatError, match="gt.csv:2"):
+        read_nclt_ground_truth(path)
+    path.write_text("utime,x,y,z,roll,pitch,yaw\n1.0e3,0,0,0,0,0,0\n")
+    assert read_nclt_ground_truth(path).utime.tolist() == [1000]
+
+
+def test_kitti_calib_strict_numbers(tmp_path):
+    _make_sequence(tmp_path, n=2)
+    calib = tmp_path / "sequences" / "05" / "calib.txt"
+    for bad in ("1_0", "0x1", "nan"):
+        calib.write_text("Tr: " + " ".join(["0"] * 11 + [bad]) + "\n")
+        with pytest.raises(DatasetFormatError, match="calib.txt:1"):
+            load_kitti_sequence(tmp_path, "05")

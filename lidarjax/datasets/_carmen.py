@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from ._errors import DatasetFormatError
+from ._text import NUMBER_FORMAT, NumberSyntaxError, is_decimal, is_integer, parse_numbers
 
 __all__ = ["CarmenLog", "load_carmen"]
 
@@ -31,6 +32,8 @@ _FLASER_FORMAT = (
 )
 _RESOLUTION_PARAM = "laser_front_laser_resolution"
 _MAX_RANGE_PARAM = "robot_front_laser_max"
+_RESOLUTION_KEY = _RESOLUTION_PARAM.encode()
+_MAX_RANGE_KEY = _MAX_RANGE_PARAM.encode()
 _GZIP_MAGIC = b"\x1f\x8b"
 
 
@@ -123,7 +126,7 @@ class CarmenLog:
         )
 
 
-def _read_text(path: Path) -> str:
+def _read_bytes(path: Path) -> bytes:
     raw = path.read_bytes()
     if raw[:2] == _GZIP_MAGIC:
         try:
@@ -134,22 +137,28 @@ def _read_text(path: Path) -> str:
                 f"corrupt or truncated gzip stream ({type(exc).__name__}: {exc})",
                 expected="a complete gzip-compressed CARMEN log",
             ) from exc
-    # CARMEN logs are ASCII; latin-1 never fails, so odd bytes surface as format errors.
-    return raw.decode("latin-1")
+    # Kept as bytes: tokens are separated by ASCII whitespace only (str.split() would also
+    # split at NBSP, NEL or control characters), and odd bytes surface as format errors.
+    return raw
 
 
-def _param_value(path: Path, tokens: list[str], lineno: int) -> float:
-    name = tokens[1]
-    try:
+_MAX_FOV_DEG = 360.0
+
+
+def _param_value(path: Path, tokens: list[bytes], lineno: int) -> float:
+    name = tokens[1].decode("latin-1")
+    limit = _MAX_FOV_DEG if name == _RESOLUTION_PARAM else math.inf
+    value = math.nan
+    if len(tokens) > 2 and is_decimal(tokens[2]):
         value = float(tokens[2])
-    except (IndexError, ValueError):
-        value = math.nan
-    if not (math.isfinite(value) and value > 0):
+    if not (math.isfinite(value) and 0 < value <= limit):
+        got = tokens[2].decode("latin-1") if len(tokens) > 2 else "nothing"
+        bound = f"in (0, {limit:g}]" if math.isfinite(limit) else "positive decimal"
         raise DatasetFormatError(
             path,
-            f"invalid value for PARAM {name}",
+            f"invalid value {got!r} for PARAM {name}",
             line=lineno,
-            expected=f"'PARAM {name} <positive number> ...'",
+            expected=f"'PARAM {name} <{bound} number> ...'",
         )
     return value
 
@@ -186,42 +195,48 @@ def load_carmen(path: str | os.PathLike[str], *, usable_range_m: float | None = 
         FileNotFoundError: ``path`` does not exist.
         ValueError: ``usable_range_m`` is not a positive number.
         DatasetFormatError: Truncated gzip, malformed ``FLASER`` line (wrong token count,
-            non-numeric value, beam count differing from earlier scans, NaN, infinite or
-            negative range, non-finite pose or timestamp), malformed honoured ``PARAM``, or
-            no ``FLASER`` line at all. The message carries the 1-based line number.
+            a value that is not a plain decimal number such as ``1_5`` or ``0x1``, beam count
+            differing from earlier scans, NaN, infinite or negative range, non-finite pose or
+            timestamp), malformed honoured ``PARAM`` (not a positive decimal; a resolution
+            above 360 degrees), a field of view ``resolution * (n_beams - 1)`` above 360
+            degrees, or no ``FLASER`` line at all. The message carries the 1-based line
+            number. Tokens are separated by ASCII whitespace only.
     """
     path = Path(path)
     if usable_range_m is not None and not (math.isfinite(usable_range_m) and usable_range_m > 0):
         raise ValueError(f"usable_range_m must be a positive number, got {usable_range_m!r}")
-    text = _read_text(path)
+    raw = _read_bytes(path)
 
     resolution_deg: float | None = None
+    resolution_line = 0
     declared_max: float | None = None
     n_beams: int | None = None
     first_scan_line = 0
-    rows: list[np.ndarray] = []
+    rows: list[list[float]] = []
     line_numbers: list[int] = []  # 1-based line of each scan
 
-    for lineno, line in enumerate(text.split("\n"), start=1):
-        if not line.startswith(("FLASER", "PARAM")):
+    for lineno, line in enumerate(raw.split(b"\n"), start=1):
+        if not line.startswith((b"FLASER", b"PARAM")):
             continue
-        tokens = line.split()
+        tokens = line.split()  # ASCII whitespace only
         kind = tokens[0]
-        if kind == "PARAM":
-            if len(tokens) >= 2 and tokens[1] == _RESOLUTION_PARAM:
+        if kind == b"PARAM":
+            if len(tokens) >= 2 and tokens[1] == _RESOLUTION_KEY:
                 resolution_deg = _param_value(path, tokens, lineno)
-            elif len(tokens) >= 2 and tokens[1] == _MAX_RANGE_PARAM:
+                resolution_line = lineno
+            elif len(tokens) >= 2 and tokens[1] == _MAX_RANGE_KEY:
                 declared_max = _param_value(path, tokens, lineno)
             continue
-        if kind != "FLASER":
+        if kind != b"FLASER":
             continue  # e.g. "FLASERX": another message type
 
         if len(tokens) < 2:
             raise _fail(path, lineno, "FLASER line has no beam count")
-        try:
-            n = int(tokens[1])
-        except ValueError:
-            raise _fail(path, lineno, f"beam count {tokens[1]!r} is not an integer") from None
+        if not is_integer(tokens[1], signed=False):
+            raise _fail(
+                path, lineno, f"beam count {tokens[1].decode('latin-1')!r} is not an integer"
+            )
+        n = int(tokens[1])
         if n <= 0:
             raise _fail(path, lineno, f"beam count must be positive, got {n}")
         if n_beams is None:
@@ -239,10 +254,11 @@ def load_carmen(path: str | os.PathLike[str], *, usable_range_m: float | None = 
         numeric = tokens[2 : n + 9]
         numeric.append(tokens[-1])
         try:
-            rows.append(np.array(numeric, dtype=np.float64))
-        except ValueError:
-            bad = next((t for t in numeric if not _is_float(t)), None)
-            raise _fail(path, lineno, f"non-numeric value {bad!r}") from None
+            rows.append(parse_numbers(numeric))
+        except NumberSyntaxError as err:
+            raise _fail(
+                path, lineno, f"non-numeric value {err.token!r} ({NUMBER_FORMAT})"
+            ) from None
         line_numbers.append(lineno)
 
     if not rows:
@@ -250,7 +266,7 @@ def load_carmen(path: str | os.PathLike[str], *, usable_range_m: float | None = 
             path, "no FLASER scans in the log (empty log)", expected=_FLASER_FORMAT
         )
     assert n_beams is not None
-    data = np.stack(rows)  # [n_scans, n_beams + 8]
+    data = np.array(rows, dtype=np.float64)  # [n_scans, n_beams + 8]
     _check_values(path, data, n_beams, line_numbers)
     ranges_m = np.ascontiguousarray(data[:, :n_beams])
     poses = np.ascontiguousarray(data[:, n_beams : n_beams + 3])
@@ -258,7 +274,16 @@ def load_carmen(path: str | os.PathLike[str], *, usable_range_m: float | None = 
     timestamps_s = np.ascontiguousarray(data[:, n_beams + 6])
 
     if resolution_deg is not None:
-        fov = math.radians(resolution_deg * (n_beams - 1))
+        fov_deg = resolution_deg * (n_beams - 1)
+        if not (math.isfinite(fov_deg) and fov_deg <= _MAX_FOV_DEG):
+            raise DatasetFormatError(
+                path,
+                f"PARAM {_RESOLUTION_PARAM} {resolution_deg:g} deg with {n_beams} beams gives "
+                f"a field of view of {fov_deg:g} deg",
+                line=resolution_line,
+                expected=f"resolution * (n_beams - 1) <= {_MAX_FOV_DEG:g} deg",
+            )
+        fov = math.radians(fov_deg)
     else:
         fov = math.pi
     azimuths = np.linspace(-fov / 2, fov / 2, n_beams) if n_beams > 1 else np.zeros(1)
@@ -300,11 +325,3 @@ def _check_values(path: Path, data: np.ndarray, n_beams: int, line_numbers: list
     else:
         message = "pose, odometry or timestamp value is not finite"
     raise _fail(path, line_numbers[row], message)
-
-
-def _is_float(token: str) -> bool:
-    try:
-        float(token)
-    except ValueError:
-        return False
-    return True

@@ -16,59 +16,52 @@ import jaxlie
 import numpy as np
 
 from ._errors import DatasetFormatError
+from ._text import NumberSyntaxError, parse_numbers
 
 __all__ = ["load_kitti_poses", "load_kitti_times"]
 
-_POSES_FORMAT = "12 numbers per line: row-major 3x4 [R | t] with R a rotation matrix"
-_TIMES_FORMAT = "one finite number (seconds) per line"
+_POSES_FORMAT = "12 decimal numbers per line: row-major 3x4 [R | t] with R a rotation matrix"
+_TIMES_FORMAT = "one finite decimal number (seconds) per line"
 _ROTATION_TOL = 1e-3  # max deviation of the singular values of R from 1
 
 
-def _read_rows(path: Path, n_cols: int, expected: str) -> np.ndarray:
+def _read_rows(path: Path, n_cols: int, expected: str) -> tuple[np.ndarray, list[int]]:
     """Parse a whitespace-separated numeric table with exactly ``n_cols`` columns.
 
-    Blank lines and ``#`` comment lines are skipped.
+    Lines end at ``\\n``; values are separated by ASCII whitespace and must be decimal
+    numbers (``1_5``, ``0x1`` are rejected). Blank lines and ``#`` comment lines are skipped.
 
     Returns:
-        float64 array ``[n_rows, n_cols]``.
+        float64 array ``[n_rows, n_cols]`` and the 1-based line number of each row.
     """
     rows: list[list[float]] = []
-    with open(path, encoding="latin-1") as f:
-        for lineno, line in enumerate(f, start=1):
-            tokens = line.split()
-            if not tokens or tokens[0].startswith("#"):
-                continue
-            if len(tokens) != n_cols:
-                raise DatasetFormatError(
-                    path,
-                    f"found {len(tokens)} values, not {n_cols}",
-                    line=lineno,
-                    expected=expected,
-                )
-            try:
-                values = [float(t) for t in tokens]
-            except ValueError as exc:
-                raise DatasetFormatError(
-                    path, f"non-numeric value ({exc})", line=lineno, expected=expected
-                ) from None
-            if not all(np.isfinite(values)):
-                raise DatasetFormatError(
-                    path, "value is NaN or infinite", line=lineno, expected=expected
-                )
-            rows.append(values)
+    lines: list[int] = []
+    for lineno, line in enumerate(path.read_bytes().split(b"\n"), start=1):
+        tokens = line.split()
+        if not tokens or tokens[0].startswith(b"#"):
+            continue
+        if len(tokens) != n_cols:
+            raise DatasetFormatError(
+                path,
+                f"found {len(tokens)} values, not {n_cols}",
+                line=lineno,
+                expected=expected,
+            )
+        try:
+            values = parse_numbers(tokens)
+        except NumberSyntaxError as exc:
+            raise DatasetFormatError(
+                path, f"non-numeric value ({exc})", line=lineno, expected=expected
+            ) from None
+        if not all(np.isfinite(values)):
+            raise DatasetFormatError(
+                path, "value is NaN or infinite", line=lineno, expected=expected
+            )
+        rows.append(values)
+        lines.append(lineno)
     if not rows:
         raise DatasetFormatError(path, "file holds no data rows", expected=expected)
-    return np.asarray(rows, dtype=np.float64)
-
-
-def _line_numbers(path: Path) -> list[int]:
-    """1-based line numbers of the data rows (non-blank, non-comment lines)."""
-    with open(path, encoding="latin-1") as f:
-        return [
-            i
-            for i, line in enumerate(f, start=1)
-            if line.split() and not line.split()[0].startswith("#")
-        ]
+    return np.asarray(rows, dtype=np.float64), lines
 
 
 @overload
@@ -99,7 +92,8 @@ def load_kitti_poses(
             close to a rotation matrix, or the file has no poses. The message names the line.
     """
     path = Path(path)
-    data = _read_rows(path, 12, _POSES_FORMAT).reshape(-1, 3, 4)
+    data, lines = _read_rows(path, 12, _POSES_FORMAT)
+    data = data.reshape(-1, 3, 4)
     rot_raw = data[:, :, :3]  # [n, 3, 3]
     trans = np.ascontiguousarray(data[:, :, 3])  # [n, 3] metres
 
@@ -112,7 +106,7 @@ def load_kitti_poses(
             path,
             f"3x3 block is not a rotation matrix (singular values {s[row].tolist()}, "
             f"det sign {det[row]:+.0f})",
-            line=_line_numbers(path)[row],
+            line=lines[row],
             expected=_POSES_FORMAT,
         )
     rot = u @ vt  # nearest rotation; det = +1 checked above
@@ -142,4 +136,4 @@ def load_kitti_times(path: str | os.PathLike[str]) -> np.ndarray:
         DatasetFormatError: A line does not hold exactly one finite number, or the file is
             empty. The message names the line.
     """
-    return _read_rows(Path(path), 1, _TIMES_FORMAT)[:, 0]
+    return _read_rows(Path(path), 1, _TIMES_FORMAT)[0][:, 0]

@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from ._errors import DatasetFormatError
+from ._text import NumberSyntaxError, is_decimal, is_integer, parse_integers, parse_numbers
 
 __all__ = ["PointCloud", "read_pcd", "write_pcd"]
 
@@ -59,6 +60,8 @@ _HEADER_KEYS = (
 _REQUIRED_KEYS = ("FIELDS", "SIZE", "TYPE", "WIDTH", "HEIGHT", "POINTS", "DATA")
 _ACCEPTED_VERSIONS = (".7", "0.7")
 _PADDING_FIELD = "_"  # PCL names padding fields "_"; they are skipped on reading.
+_MAX_RECORD_BYTES = 2**31 - 1  # sum of SIZE * COUNT per point (NumPy's limit for a record)
+_MAX_DIMENSION = 2**32 - 1  # WIDTH and HEIGHT are uint32 in PCL
 
 
 # --------------------------------------------------------------------------------------------
@@ -249,7 +252,7 @@ _HEADER_EXPECTED = (
 
 
 def _parse_header(path: Path, raw: bytes) -> _Header:
-    entries: dict[str, tuple[list[str], int]] = {}
+    entries: dict[str, tuple[list[bytes], int]] = {}
     pos = 0
     lineno = 0
     data_offset = -1
@@ -257,16 +260,18 @@ def _parse_header(path: Path, raw: bytes) -> _Header:
         end = raw.find(b"\n", pos)
         next_pos = len(raw) if end < 0 else end + 1
         lineno += 1
-        text = raw[pos:next_pos].decode("latin-1")
+        line = raw[pos:next_pos].split(b"#", 1)[0]
         pos = next_pos
-        text = text.split("#", 1)[0].strip()
-        if not text:
+        tokens = line.split()  # ASCII whitespace only
+        if not tokens:
             continue
-        tokens = text.split()
-        key = tokens[0].upper()
+        key = tokens[0].upper().decode("latin-1")
         if key not in _HEADER_KEYS:
             raise DatasetFormatError(
-                path, f"unknown header entry {tokens[0]!r}", line=lineno, expected=_HEADER_EXPECTED
+                path,
+                f"unknown header entry {tokens[0].decode('latin-1')!r}",
+                line=lineno,
+                expected=_HEADER_EXPECTED,
             )
         if key in entries:
             raise DatasetFormatError(
@@ -285,15 +290,26 @@ def _parse_header(path: Path, raw: bytes) -> _Header:
     def fail(key: str, message: str, expected: str) -> DatasetFormatError:
         return DatasetFormatError(path, message, line=entries[key][1], expected=expected)
 
+    def text(key: str) -> str:
+        return " ".join(v.decode("latin-1") for v in entries[key][0])
+
     if "VERSION" in entries:
         version = entries["VERSION"][0]
-        if len(version) != 1 or version[0] not in _ACCEPTED_VERSIONS:
-            raise fail("VERSION", f"unsupported VERSION {' '.join(version)!r}", "VERSION 0.7")
+        if len(version) != 1 or version[0].decode("latin-1") not in _ACCEPTED_VERSIONS:
+            raise fail("VERSION", f"unsupported VERSION {text('VERSION')!r}", "VERSION 0.7")
 
-    names = entries["FIELDS"][0]
-    n_fields = len(names)
+    raw_names = entries["FIELDS"][0]
+    n_fields = len(raw_names)
     if n_fields == 0:
         raise fail("FIELDS", "FIELDS lists no fields", "FIELDS name_1 .. name_k")
+    for name in raw_names:
+        if any(b < 0x21 or b > 0x7E for b in name):
+            raise fail(
+                "FIELDS",
+                f"invalid field name {name.decode('latin-1')!r} in FIELDS",
+                "field names of printable ASCII characters",
+            )
+    names = [n.decode("ascii") for n in raw_names]
     real_names = [n for n in names if n != _PADDING_FIELD]
     if len(set(real_names)) != len(real_names):
         raise fail("FIELDS", f"duplicate field names in {names}", "distinct field names")
@@ -306,17 +322,16 @@ def _parse_header(path: Path, raw: bytes) -> _Header:
         expected = f"{key} with {n_fields} positive integers (one per field in FIELDS)"
         if len(values) != n_fields:
             raise fail(key, f"{key} has {len(values)} entries but FIELDS has {n_fields}", expected)
-        try:
-            out = [int(v) for v in values]
-        except ValueError:
-            raise fail(key, f"non-integer {key} entry in {values}", expected) from None
+        if not all(is_integer(v, signed=False) for v in values):
+            raise fail(key, f"non-integer {key} entry in {text(key)!r}", expected)
+        out = [int(v) for v in values]
         if any(v < 1 for v in out):
-            raise fail(key, f"{key} entries must be >= 1, got {values}", expected)
+            raise fail(key, f"{key} entries must be >= 1, got {text(key)!r}", expected)
         return out
 
     sizes = int_list("SIZE")
     counts = int_list("COUNT", [1] * n_fields)
-    types = [t.upper() for t in entries["TYPE"][0]]
+    types = [t.upper().decode("latin-1") for t in entries["TYPE"][0]]
     if len(types) != n_fields:
         raise fail(
             "TYPE",
@@ -333,19 +348,23 @@ def _parse_header(path: Path, raw: bytes) -> _Header:
                 "F 4|8, I 1|2|4|8 or U 1|2|4|8",
             )
         dtypes.append(dtype)
+    record_size = sum(s * c for s, c in zip(sizes, counts, strict=True))
+    if record_size > _MAX_RECORD_BYTES:
+        key = "COUNT" if "COUNT" in entries else "SIZE"
+        raise fail(
+            key,
+            f"COUNT {text('COUNT') if 'COUNT' in entries else '1 ..'} with SIZE {text('SIZE')} "
+            f"gives {record_size} bytes per point",
+            f"at most {_MAX_RECORD_BYTES} bytes per point (sum of SIZE * COUNT)",
+        )
 
     def one_int(key: str) -> int:
         values = entries[key][0]
-        try:
-            if len(values) != 1:
-                raise ValueError
-            value = int(values[0])
-            if value < 0:
-                raise ValueError
-        except ValueError:
-            raise fail(
-                key, f"bad {key} value {' '.join(values)!r}", f"{key} <non-negative integer>"
-            ) from None
+        if len(values) != 1 or not is_integer(values[0], signed=False):
+            raise fail(key, f"bad {key} value {text(key)!r}", f"{key} <non-negative integer>")
+        value = int(values[0])
+        if key != "POINTS" and value > _MAX_DIMENSION:
+            raise fail(key, f"{key} {value} is too large", f"{key} <= {_MAX_DIMENSION}")
         return value
 
     width, height, points = one_int("WIDTH"), one_int("HEIGHT"), one_int("POINTS")
@@ -359,17 +378,22 @@ def _parse_header(path: Path, raw: bytes) -> _Header:
     viewpoint = np.array(_DEFAULT_VIEWPOINT, dtype=np.float64)
     if "VIEWPOINT" in entries:
         values = entries["VIEWPOINT"][0]
-        try:
-            if len(values) != 7:
-                raise ValueError
-            viewpoint = np.array([float(v) for v in values], dtype=np.float64)
-        except ValueError:
+        if len(values) != 7 or not all(is_decimal(v) for v in values):
             raise fail(
-                "VIEWPOINT", f"bad VIEWPOINT {' '.join(values)!r}", "VIEWPOINT tx ty tz qw qx qy qz"
-            ) from None
+                "VIEWPOINT",
+                f"bad VIEWPOINT {text('VIEWPOINT')!r}",
+                "VIEWPOINT with 7 finite numbers tx ty tz qw qx qy qz",
+            )
+        viewpoint = np.array([float(v) for v in values], dtype=np.float64)
+        if not np.isfinite(viewpoint).all():
+            raise fail(
+                "VIEWPOINT",
+                f"VIEWPOINT {text('VIEWPOINT')!r} overflows",
+                "VIEWPOINT with 7 finite numbers tx ty tz qw qx qy qz",
+            )
 
     data_values = entries["DATA"][0]
-    data = data_values[0].lower() if len(data_values) == 1 else " ".join(data_values)
+    data = data_values[0].lower().decode("latin-1") if len(data_values) == 1 else text("DATA")
     if data not in _DATA_ENCODINGS:
         raise fail("DATA", f"unknown DATA encoding {data!r}", "DATA ascii|binary|binary_compressed")
 
@@ -401,9 +425,15 @@ def read_pcd(path: str | os.PathLike[str]) -> PointCloud:
 
     Raises:
         FileNotFoundError: If ``path`` does not exist.
-        DatasetFormatError: If the header is malformed, the data is truncated or corrupt, or an
-            ASCII line has the wrong number of values (the message names the path, the 1-based
-            line where applicable, and the expected format).
+        DatasetFormatError: If the header is malformed or insane (``POINTS != WIDTH * HEIGHT``,
+            inconsistent ``SIZE``/``TYPE``/``COUNT``, a record larger than ``2**31 - 1`` bytes,
+            a non-decimal number), the payload does not have exactly the declared size
+            (``binary``: ``POINTS`` records, nothing more or less; ``binary_compressed``: the
+            two size fields match ``POINTS`` and the bytes that follow), the LZF stream is
+            corrupt, an ASCII line has the wrong number of values, a value that is not a
+            number of the field's type or out of its range, or there are more or fewer than
+            ``POINTS`` non-blank data lines. The message names the path, the 1-based line
+            where applicable, and the expected format.
     """
     path = Path(path)
     raw = path.read_bytes()
@@ -436,16 +466,24 @@ def _field_spec(header: _Header) -> str:
 
 def _read_ascii(path: Path, header: _Header, body: bytes) -> list[np.ndarray]:
     n, total = header.points, sum(header.counts)
-    expected = f"{total} whitespace-separated values per line ({_field_spec(header)})"
-    rows: list[list[str]] = []
+    expected = (
+        f"{total} whitespace-separated values per line ({_field_spec(header)}); decimal "
+        "numbers (nan / inf allowed) for F fields, integers for I / U fields"
+    )
+    rows: list[list[bytes]] = []
     row_lines: list[int] = []
-    lines = body.decode("latin-1").split("\n")
+    lines = body.split(b"\n")
     for lineno, line in enumerate(lines, start=header.data_line):
-        if len(rows) == n:
-            break
-        tokens = line.split()
+        tokens = line.split()  # ASCII whitespace only
         if not tokens:
             continue
+        if len(rows) == n:
+            raise DatasetFormatError(
+                path,
+                f"more than POINTS = {n} data lines (extra or duplicated line)",
+                line=lineno,
+                expected=f"exactly {n} data lines, then only blank lines",
+            )
         if len(tokens) != total:
             raise DatasetFormatError(
                 path, f"line has {len(tokens)} values", line=lineno, expected=expected
@@ -460,33 +498,59 @@ def _read_ascii(path: Path, header: _Header, body: bytes) -> list[np.ndarray]:
             line=last,
             expected=f"{n} data lines of {expected}",
         )
-    table = np.array(rows, dtype=str).reshape(n, total)
     columns: list[np.ndarray] = []
     start = 0
     for name, dtype, count in zip(header.names, header.dtypes, header.counts, strict=True):
-        block = table[:, start : start + count]
+        tokens = [t for row in rows for t in row[start : start + count]]  # point-major
         try:
-            columns.append(block.astype(dtype))
-        except (ValueError, OverflowError):
-            row, token = _find_bad_token(block, dtype)
+            if dtype.kind == "f":
+                values = _ascii_floats(tokens, dtype)
+            else:
+                values = _ascii_integers(tokens, dtype)
+        except NumberSyntaxError as err:
             raise DatasetFormatError(
                 path,
-                f"cannot parse {token!r} as {dtype} for field {name!r}",
-                line=row_lines[row],
+                f"cannot parse {err.token!r} as {dtype} for field {name!r}",
+                line=row_lines[err.index // count],
                 expected=expected,
             ) from None
+        except _OutOfRange as err:
+            raise DatasetFormatError(
+                path,
+                f"value {err.token!r} of field {name!r} is out of range for {dtype}",
+                line=row_lines[err.index // count],
+                expected=expected,
+            ) from None
+        columns.append(values.reshape(n, count))
         start += count
     return columns
 
 
-def _find_bad_token(block: np.ndarray, dtype: np.dtype) -> tuple[int, str]:
-    for i, row in enumerate(block):
-        for token in row:
-            try:
-                np.array([token]).astype(dtype)
-            except (ValueError, OverflowError):
-                return i, str(token)
-    return 0, "?"  # pragma: no cover - the caller only calls this after a failure
+class _OutOfRange(ValueError):
+    def __init__(self, index: int, token: bytes) -> None:
+        self.index = index
+        self.token = token.decode("latin-1")
+        super().__init__(self.token)
+
+
+def _ascii_floats(tokens: list[bytes], dtype: np.dtype) -> np.ndarray:
+    """Decimal or nan/inf tokens -> float64 (correctly rounded) -> ``dtype``; overflow raises."""
+    wide = np.array(parse_numbers(tokens), dtype=np.float64)
+    with np.errstate(over="ignore"):
+        out = wide.astype(dtype)
+    for i in np.flatnonzero(np.isinf(out)):  # an overflowing literal, or a genuine "inf"
+        if is_decimal(tokens[i]):
+            raise _OutOfRange(int(i), tokens[i])
+    return out
+
+
+def _ascii_integers(tokens: list[bytes], dtype: np.dtype) -> np.ndarray:
+    values = parse_integers(tokens)
+    info = np.iinfo(dtype)
+    if values and (min(values) < info.min or max(values) > info.max):
+        i = next(i for i, v in enumerate(values) if not info.min <= v <= info.max)
+        raise _OutOfRange(i, tokens[i])
+    return np.array(values, dtype=dtype)
 
 
 def _record_dtype(header: _Header) -> np.dtype:
@@ -498,29 +562,45 @@ def _record_dtype(header: _Header) -> np.dtype:
     )
 
 
+def _record_size(header: _Header) -> int:
+    return sum(dt.itemsize * c for dt, c in zip(header.dtypes, header.counts, strict=True))
+
+
 def _read_binary(path: Path, header: _Header, body: bytes) -> list[np.ndarray]:
-    record = _record_dtype(header)
-    need = header.points * record.itemsize
-    if len(body) < need:
+    record_size = _record_size(header)
+    need = header.points * record_size
+    if len(body) != need:
+        what = (
+            f"truncated: {len(body)} bytes"
+            if len(body) < need
+            else f"too long: {len(body) - need} bytes beyond the {header.points} points"
+        )
         raise DatasetFormatError(
             path,
-            f"binary data truncated: {len(body)} bytes, need {need}",
-            expected=f"{header.points} little-endian records of {record.itemsize} bytes "
-            f"({_field_spec(header)})",
+            f"binary data {what}; the header declares POINTS * record size = "
+            f"{header.points} * {record_size} = {need} bytes",
+            expected=f"exactly {header.points} little-endian records of {record_size} bytes "
+            f"({_field_spec(header)}) after the DATA line",
         )
-    table = np.frombuffer(body, dtype=record, count=header.points)
+    if header.points == 0:
+        return [np.empty((0, c), dtype=dt) for dt, c in zip(header.dtypes, header.counts)]
+    table = np.frombuffer(body, dtype=_record_dtype(header), count=header.points)
     return [
         table[f"f{i}"].astype(dt).reshape(header.points, c)
         for i, (dt, c) in enumerate(zip(header.dtypes, header.counts, strict=True))
     ]
 
 
+_LZF_MAX_RATIO = 88  # a 3-byte back-reference expands to at most 264 bytes
+
+
 def _read_binary_compressed(path: Path, header: _Header, body: bytes) -> list[np.ndarray]:
     sizes = [dt.itemsize * c for dt, c in zip(header.dtypes, header.counts, strict=True)]
     usize_expected = header.points * sum(sizes)
     expected = (
-        "uint32 compressed size, uint32 uncompressed size, then LZF data decompressing to "
-        f"{usize_expected} bytes of field-major values ({_field_spec(header)})"
+        "uint32 compressed size, uint32 uncompressed size, then exactly that many bytes of "
+        f"LZF data decompressing to {usize_expected} bytes of field-major values "
+        f"({_field_spec(header)})"
     )
     if len(body) < 8:
         raise DatasetFormatError(
@@ -533,14 +613,22 @@ def _read_binary_compressed(path: Path, header: _Header, body: bytes) -> list[np
             f"uncompressed size {usize} does not match POINTS * record size = {usize_expected}",
             expected=expected,
         )
-    if len(body) - 8 < csize:
+    if len(body) - 8 != csize:
+        what = "truncated" if len(body) - 8 < csize else "trailing bytes"
         raise DatasetFormatError(
             path,
-            f"compressed data truncated: {len(body) - 8} bytes, header says {csize}",
+            f"compressed size {csize} in the size header, but {len(body) - 8} bytes follow "
+            f"({what})",
+            expected=expected,
+        )
+    if usize > _LZF_MAX_RATIO * csize:
+        raise DatasetFormatError(
+            path,
+            f"{csize} bytes of LZF data cannot decompress to {usize} bytes",
             expected=expected,
         )
     try:
-        plain = _lzf_decompress(body[8 : 8 + csize], usize)
+        plain = _lzf_decompress(body[8:], usize)
     except _LZFError as err:
         raise DatasetFormatError(path, f"corrupt LZF stream: {err}", expected=expected) from None
     columns: list[np.ndarray] = []

@@ -30,6 +30,7 @@ NumPy only; nothing here is called inside ``jit``.
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 import struct
 from collections.abc import Iterable, Iterator
@@ -40,6 +41,7 @@ import numpy as np
 
 from ._errors import DatasetFormatError
 from ._kitti import load_kitti_poses, load_kitti_times
+from ._text import NumberSyntaxError, is_decimal, is_integer, is_number, parse_numbers
 
 __all__ = [
     "KittiSequence",
@@ -63,7 +65,7 @@ __all__ = [
 # --------------------------------------------------------------------------------------------
 
 _KITTI_BIN_FORMAT = "little-endian float32 quadruples x y z reflectance (16 bytes per point)"
-_KITTI_CALIB_FORMAT = "'Tr:' followed by 12 numbers (row-major 3x4 T_cam_velo)"
+_KITTI_CALIB_FORMAT = "'Tr:' followed by 12 decimal numbers (row-major 3x4 T_cam_velo)"
 _KITTI_DTYPE = np.dtype("<f4")
 
 
@@ -129,32 +131,31 @@ def _read_kitti_calib_tr(path: Path) -> np.ndarray | None:
 
     Returns ``None`` if the file has no ``Tr:`` line.
     """
-    with open(path, encoding="latin-1") as f:
-        for lineno, line in enumerate(f, start=1):
-            key, sep, rest = line.partition(":")
-            if not sep or key.strip() != "Tr":
-                continue
-            tokens = rest.split()
-            if len(tokens) != 12:
-                raise DatasetFormatError(
-                    path,
-                    f"'Tr:' line holds {len(tokens)} values, not 12",
-                    line=lineno,
-                    expected=_KITTI_CALIB_FORMAT,
-                )
-            try:
-                values = np.array([float(t) for t in tokens])
-            except ValueError as exc:
-                raise DatasetFormatError(
-                    path, f"non-numeric value ({exc})", line=lineno, expected=_KITTI_CALIB_FORMAT
-                ) from None
-            if not np.isfinite(values).all():
-                raise DatasetFormatError(
-                    path, "value is NaN or infinite", line=lineno, expected=_KITTI_CALIB_FORMAT
-                )
-            mat = np.eye(4)
-            mat[:3, :] = values.reshape(3, 4)
-            return mat
+    for lineno, line in enumerate(path.read_bytes().split(b"\n"), start=1):
+        key, sep, rest = line.partition(b":")
+        if not sep or key.strip() != b"Tr":
+            continue
+        tokens = rest.split()  # ASCII whitespace only
+        if len(tokens) != 12:
+            raise DatasetFormatError(
+                path,
+                f"'Tr:' line holds {len(tokens)} values, not 12",
+                line=lineno,
+                expected=_KITTI_CALIB_FORMAT,
+            )
+        try:
+            values = np.array(parse_numbers(tokens))
+        except NumberSyntaxError as exc:
+            raise DatasetFormatError(
+                path, f"non-numeric value ({exc})", line=lineno, expected=_KITTI_CALIB_FORMAT
+            ) from None
+        if not np.isfinite(values).all():
+            raise DatasetFormatError(
+                path, "value is NaN or infinite", line=lineno, expected=_KITTI_CALIB_FORMAT
+            )
+        mat = np.eye(4)
+        mat[:3, :] = values.reshape(3, 4)
+        return mat
     return None
 
 
@@ -295,7 +296,10 @@ _NCLT_PACKET_FORMAT = (
     "packets of 4 x uint16 magic 44444, uint32 num_hits, uint64 utime, 4 padding bytes, "
     "then num_hits 8-byte hits"
 )
-_NCLT_GT_FORMAT = "7 comma-separated numbers per row: utime, x, y, z, roll, pitch, yaw"
+_NCLT_GT_FORMAT = (
+    "7 comma-separated decimal numbers per row: integer utime, x, y, z, roll, pitch, yaw "
+    "(nan allowed)"
+)
 
 
 class NcltHitsPacket(NamedTuple):
@@ -426,13 +430,15 @@ def iter_nclt_velodyne_hits(
     Raises:
         FileNotFoundError: ``path`` does not exist (the message names it).
         DatasetFormatError: A packet does not start with the magic, or a header or the hits
-            of a packet are truncated; the message quotes the byte offset.
+            of a packet are truncated (``num_hits`` is checked against the file size before
+            anything is read); the message quotes the byte offset.
         ValueError: ``max_packets`` is negative.
     """
     if max_packets is not None and max_packets < 0:
         raise ValueError(f"max_packets must be >= 0 or None, got {max_packets}")
     path = Path(path)
     with open(path, "rb") as f:
+        file_size = os.fstat(f.fileno()).st_size
         offset = 0
         count = 0
         while max_packets is None or count < max_packets:
@@ -461,8 +467,17 @@ def iter_nclt_velodyne_hits(
                     f"utime {utime} at byte offset {offset + 12} does not fit in int64",
                     expected=_NCLT_PACKET_FORMAT,
                 )
+            available = file_size - offset - _NCLT_HEADER.size
+            if 8 * num_hits > available:  # checked before reading: num_hits may be ~2**32
+                raise DatasetFormatError(
+                    path,
+                    f"truncated packet at byte offset {offset} (packet {count}): header "
+                    f"announces {num_hits} hits ({8 * num_hits} bytes), only "
+                    f"{max(available, 0)} bytes follow in the {file_size}-byte file",
+                    expected=_NCLT_PACKET_FORMAT,
+                )
             body = f.read(8 * num_hits)
-            if len(body) != 8 * num_hits:
+            if len(body) != 8 * num_hits:  # the file shrank while being read
                 raise DatasetFormatError(
                     path,
                     f"truncated packet at byte offset {offset} (packet {count}): header "
@@ -523,14 +538,23 @@ def write_nclt_velodyne_hits(
             f.write(payload)
 
 
-def _parse_utime(token: str) -> int:
-    try:
-        return int(token)
-    except ValueError:
-        value = float(token)  # may raise ValueError, handled by the caller
-        if not np.isfinite(value) or value != int(value):
-            raise ValueError(f"utime {token!r} is not an integer") from None
-        return int(value)
+_INT64_MIN, _INT64_MAX = -(2**63), 2**63 - 1
+_EXACT_FLOAT_INT = 2**53  # float64 holds every integer up to this exactly
+
+
+def _parse_utime(token: bytes) -> int:
+    """An integer literal in int64, or a decimal literal of an exactly representable integer."""
+    text = token.decode("latin-1")
+    if is_integer(token):
+        value = int(token)
+        if not _INT64_MIN <= value <= _INT64_MAX:
+            raise ValueError(f"utime {text!r} does not fit in int64")
+        return value
+    if is_decimal(token):
+        value = float(token)
+        if math.isfinite(value) and value == int(value) and abs(value) <= _EXACT_FLOAT_INT:
+            return int(value)
+    raise ValueError(f"utime {text!r} is not an integer")
 
 
 def read_nclt_ground_truth(path: str | os.PathLike[str]) -> NcltGroundTruth:
@@ -539,7 +563,9 @@ def read_nclt_ground_truth(path: str | os.PathLike[str]) -> NcltGroundTruth:
     Rows are ``utime, x, y, z, roll, pitch, yaw`` (microseconds, metres, radians) in NCLT's
     frame: x north, y east, z down (see :func:`nclt_ground_truth_se2` for a z-up planar
     pose). Rows whose pose holds a NaN are *kept* and flagged by ``valid = False``. Blank
-    lines, ``#`` comments and one non-numeric header line at the top are skipped.
+    lines, ``#`` comments and one non-numeric header line at the top are skipped. Values are
+    decimal numbers or ``nan``; ``utime`` is an integer (in int64; a decimal literal such as
+    ``1.3e15`` is accepted when it is an integer below ``2**53``).
 
     Args:
         path: The CSV file.
@@ -549,41 +575,43 @@ def read_nclt_ground_truth(path: str | os.PathLike[str]) -> NcltGroundTruth:
 
     Raises:
         FileNotFoundError: ``path`` does not exist (the message names it).
-        DatasetFormatError: A row does not have 7 fields, holds a non-numeric or infinite
-            value or a missing/non-integer utime, or the file holds no rows. The message
-            names the line.
+        DatasetFormatError: A row does not have 7 fields, holds a value that is not a decimal
+            number or ``nan`` (``1_5``, ``inf``), a missing, non-integer or out-of-int64
+            utime, a second header line, or the file holds no rows. The message names the
+            line.
     """
     path = Path(path)
     utimes: list[int] = []
     rows: list[list[float]] = []
-    with open(path, encoding="latin-1") as f:
-        for lineno, line in enumerate(f, start=1):
-            text = line.strip()
-            if not text or text.startswith("#"):
-                continue
-            tokens = [t.strip() for t in text.split(",")]
-            if len(tokens) != 7:
-                raise DatasetFormatError(
-                    path,
-                    f"found {len(tokens)} fields, not 7",
-                    line=lineno,
-                    expected=_NCLT_GT_FORMAT,
-                )
-            try:
-                utime = _parse_utime(tokens[0])
-                values = [float(t) for t in tokens[1:]]
-            except ValueError as exc:
-                if not utimes and not any(_is_number(t) for t in tokens):
-                    continue  # a header line such as "utime,x,y,z,roll,pitch,yaw"
-                raise DatasetFormatError(
-                    path, f"bad value ({exc})", line=lineno, expected=_NCLT_GT_FORMAT
-                ) from None
-            if np.isinf(values).any():
-                raise DatasetFormatError(
-                    path, "value is infinite", line=lineno, expected=_NCLT_GT_FORMAT
-                )
-            utimes.append(utime)
-            rows.append(values)
+    header_skipped = False
+    for lineno, line in enumerate(path.read_bytes().split(b"\n"), start=1):
+        text = line.strip()  # ASCII whitespace only
+        if not text or text.startswith(b"#"):
+            continue
+        tokens = [t.strip() for t in text.split(b",")]
+        if len(tokens) != 7:
+            raise DatasetFormatError(
+                path,
+                f"found {len(tokens)} fields, not 7",
+                line=lineno,
+                expected=_NCLT_GT_FORMAT,
+            )
+        if not rows and not header_skipped and not any(is_number(t) for t in tokens):
+            header_skipped = True  # a header line such as "utime,x,y,z,roll,pitch,yaw"
+            continue
+        try:
+            utime = _parse_utime(tokens[0])
+            values = parse_numbers(tokens[1:])
+        except ValueError as exc:
+            raise DatasetFormatError(
+                path, f"bad value ({exc})", line=lineno, expected=_NCLT_GT_FORMAT
+            ) from None
+        if np.isinf(values).any():
+            raise DatasetFormatError(
+                path, "value is infinite", line=lineno, expected=_NCLT_GT_FORMAT
+            )
+        utimes.append(utime)
+        rows.append(values)
     if not rows:
         raise DatasetFormatError(path, "file holds no data rows", expected=_NCLT_GT_FORMAT)
     xyz_rpy = np.asarray(rows, dtype=np.float64)
@@ -592,14 +620,6 @@ def read_nclt_ground_truth(path: str | os.PathLike[str]) -> NcltGroundTruth:
         xyz_rpy=xyz_rpy,
         valid=~np.isnan(xyz_rpy).any(axis=1),
     )
-
-
-def _is_number(token: str) -> bool:
-    try:
-        float(token)
-    except ValueError:
-        return False
-    return True
 
 
 def write_nclt_ground_truth(

@@ -81,7 +81,9 @@ def _variant(v) -> dict:
     if v.get("model") not in NAMES:
         raise ValueError(f"variant model must be one of {sorted(NAMES)}, got {v.get('model')!r}")
     if v.get("init") not in INITS:
-        raise ValueError(f"variant init must be one of {sorted(map(str, INITS))}, got {v.get('init')!r}")
+        raise ValueError(
+            f"variant init must be one of {sorted(map(str, INITS))}, got {v.get('init')!r}"
+        )
     return v
 
 
@@ -260,8 +262,15 @@ def init_from_start_scan(v: dict, cache: MapCache, az, seq, cfg, r_min, r_max, n
     lat_cfg = {**LATTICE_DEFAULTS, **dict(v.get("lattice") or {})}
     unknown = set(lat_cfg) - set(LATTICE_DEFAULTS)
     if unknown:
-        raise ValueError(f"lattice keys {sorted(unknown)} unknown; allowed {sorted(LATTICE_DEFAULTS)}")
-    key_l = ("lattice", lat_cfg["position_step_m"], lat_cfg["n_headings"], lat_cfg["max_hypotheses"])
+        raise ValueError(
+            f"lattice keys {sorted(unknown)} unknown; allowed {sorted(LATTICE_DEFAULTS)}"
+        )
+    key_l = (
+        "lattice",
+        lat_cfg["position_step_m"],
+        lat_cfg["n_headings"],
+        lat_cfg["max_hypotheses"],
+    )
     if key_l not in cache._models:
         cache._models[key_l] = loc.pose_lattice(
             cache.stats.spec,
@@ -304,7 +313,9 @@ def run_variant(v: dict, cache: MapCache, az, seq, key, cfg, r_min, r_max, runs:
     elif v.get("init") == "global_scan":
         t_init = time.perf_counter()
         states = [
-            init_from_start_scan(v, cache, az, seq, cfg, r_min, r_max, n, jax.random.fold_in(key, 100 + r))
+            init_from_start_scan(
+                v, cache, az, seq, cfg, r_min, r_max, n, jax.random.fold_in(key, 100 + r)
+            )
             for r in range(runs)
         ]
         states = jax.tree.map(lambda *x: jnp.stack(x), *states)
@@ -406,7 +417,12 @@ def write_tables(results: dict, cfg) -> str:
         )
     glob = [r.get("global") for r in results.values() if r.get("global")]
     if glob:
-        lines += ["", "### Global localization: runs converged / error once converged [m] (ms per step, init s)", ""]
+        lines += [
+            "",
+            "### Global localization: runs converged / error once converged [m] "
+            "(ms per step, init s)",
+            "",
+        ]
         gv = list(glob[0])
         lines.append("| log | " + " | ".join(gv) + " |")
         lines.append("|---|" + "---|" * len(gv))
@@ -416,7 +432,11 @@ def write_tables(results: dict, cfg) -> str:
             cells = [
                 f"{x['converged_runs']}/{x['runs']}: {_fmt(x['pos_err_converged_m'])} "
                 f"({x['ms_per_step']:.0f} ms"
-                + (f", init {x['init_seconds_per_run']:.0f} s)" if x.get("init_seconds_per_run") else ")")
+                + (
+                    f", init {x['init_seconds_per_run']:.0f} s)"
+                    if x.get("init_seconds_per_run")
+                    else ")"
+                )
                 for x in r["global"].values()
             ]
             lines.append(f"| {name} | " + " | ".join(cells) + " |")
@@ -426,7 +446,9 @@ def write_tables(results: dict, cfg) -> str:
                 tot[vn][0] += x["converged_runs"]
                 tot[vn][1] += x["runs"]
         lines.append(
-            "| all | " + " | ".join(f"{c}/{t} ({100 * c / max(t, 1):.0f} %)" for c, t in tot.values()) + " |"
+            "| all | "
+            + " | ".join(f"{c}/{t} ({100 * c / max(t, 1):.0f} %)" for c, t in tot.values())
+            + " |"
         )
     return "\n".join(lines) + "\n"
 

@@ -55,7 +55,12 @@ def test_pose_lattice_against_brute_force():
             ]
             if cells:
                 c = np.mean(np.asarray(cells, float), axis=0)
-                ref[(bi // 3, bj // 3)] = (len(cells), -1.0 + (c[0] + 0.5) * 0.1, 2.0 + (c[1] + 0.5) * 0.1, cells)
+                ref[(bi // 3, bj // 3)] = (
+                    len(cells),
+                    -1.0 + (c[0] + 0.5) * 0.1,
+                    2.0 + (c[1] + 0.5) * 0.1,
+                    cells,
+                )
     assert lat.n_blocks == len(ref)
     assert lat.n_free == int(free.sum())
     pos, counts = np.asarray(lat.positions), np.asarray(lat.counts)
@@ -125,11 +130,11 @@ def test_proposal_density_integrates_to_one(uniform_fraction):
     ys = 2.0 + (jj[:, None, None] + sub[None, None, :]) * 0.1
     xs, ys = np.broadcast_arrays(xs, ys)
     pts = np.stack([xs.ravel(), ys.ravel()], -1)
-    v = np.concatenate(
-        [np.repeat(pts, th.size, 0), np.tile(th, pts.shape[0])[:, None]], axis=-1
-    )
+    v = np.concatenate([np.repeat(pts, th.size, 0), np.tile(th, pts.shape[0])[:, None]], axis=-1)
     lq = np.asarray(
-        proposal_log_density(lat, jnp.asarray(log_probs, jnp.float32), jnp.asarray(v, jnp.float32), uniform_fraction)
+        proposal_log_density(
+            lat, jnp.asarray(log_probs, jnp.float32), jnp.asarray(v, jnp.float32), uniform_fraction
+        )
     )
     integral = np.exp(lq.astype(np.float64)).sum() * (0.1 / 4) ** 2 * (2 * np.pi / 24)
     assert abs(integral - 1.0) < 1e-4
@@ -184,7 +189,9 @@ def test_init_from_scan_weights_give_the_posterior():
     lat = pose_lattice(spec, free, position_step_m=0.5, n_headings=8)
     model = GaussianPose(jnp.asarray(mean, jnp.float32), jnp.asarray(std, jnp.float32))
     n = 200_000
-    st = init_from_scan(n, lat, model, jnp.zeros(3), key=jax.random.PRNGKey(0), uniform_fraction=0.1)
+    st = init_from_scan(
+        n, lat, model, jnp.zeros(3), key=jax.random.PRNGKey(0), uniform_fraction=0.1
+    )
     v = np.asarray(to_vector(st.particles), np.float64)
     w = np.exp(np.asarray(st.log_weights, np.float64))
     assert abs(w.sum() - 1) < 1e-4
@@ -212,7 +219,9 @@ def test_init_from_scan_is_deterministic_and_checks_inputs():
     model = GaussianPose(jnp.asarray([0.0, 3.0, 0.0]), jnp.asarray([0.3, 0.3, 0.5]))
     a = init_from_scan(50, lat, model, jnp.zeros(2), key=jax.random.PRNGKey(3))
     b = init_from_scan(50, lat, model, jnp.zeros(2), key=jax.random.PRNGKey(3))
-    assert np.array_equal(np.asarray(a.particles.parameters()), np.asarray(b.particles.parameters()))
+    assert np.array_equal(
+        np.asarray(a.particles.parameters()), np.asarray(b.particles.parameters())
+    )
     assert np.array_equal(np.asarray(a.log_weights), np.asarray(b.log_weights))
     with pytest.raises(ValueError, match="n must"):
         init_from_scan(0, lat, model, jnp.zeros(2), key=jax.random.PRNGKey(0))
@@ -241,7 +250,9 @@ def test_lattice_scores_chunking_matches_direct():
     model = GaussianPose(jnp.asarray([0.0, 3.0, 1.0]), jnp.asarray([0.3, 0.3, 0.5]))
     direct = np.asarray(model(jaxlie.SE2.from_xy_theta(*lat.hypotheses().T), None))
     for c in (1, 13, 10_000):
-        np.testing.assert_allclose(np.asarray(lattice_scores(lat, model, None, c)), direct, rtol=1e-6)
+        np.testing.assert_allclose(
+            np.asarray(lattice_scores(lat, model, None, c)), direct, rtol=1e-6
+        )
 
 
 @pytest.mark.slow
@@ -261,9 +272,13 @@ def test_init_from_scan_finds_the_pose_in_an_office():
     nn = h + np.asarray(stats.misses, float)
     free = (nn > 0) & (h < 0.2 * np.maximum(nn, 1))
     lat = pose_lattice(spec, free, position_step_m=0.5, n_headings=72)
-    model = ScanModel(decay_rate_map(smooth_stats(stats, 0.3)), az[::3], r_min, r_max, ray_floor=-10.0)
+    model = ScanModel(
+        decay_rate_map(smooth_stats(stats, 0.3)), az[::3], r_min, r_max, ray_floor=-10.0
+    )
     truth = world.trajectory(120, jitter_m=0.3, seed=2)[37]
-    z = simulate_scans(world, truth[None], az, max_range_m=r_max, noise_sigma_m=0.01, seed=5)[0][::3]
+    z = simulate_scans(world, truth[None], az, max_range_m=r_max, noise_sigma_m=0.01, seed=5)[0][
+        ::3
+    ]
     st = init_from_scan(2000, lat, model, jnp.asarray(z), key=jax.random.PRNGKey(1))
     v = np.asarray(to_vector(st.particles), np.float64)
     w = np.exp(np.asarray(st.log_weights, np.float64))

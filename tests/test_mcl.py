@@ -100,7 +100,9 @@ def test_mcl_remedies_experiment_small(tmp_path):
         "global_localization.runs=1",
         "~global_localization.variants",
         "+global_localization.variants={end:{model:end,particles:500},"
-        "c2f:{model:fmp_dec,particles:500,coarse_to_fine:{sigmas_m:[0.0,0.1,0.2]}}}",
+        "c2f:{model:fmp_dec,particles:500,coarse_to_fine:{sigmas_m:[0.0,0.1,0.2]}},"
+        "scan:{model:dec,particles:500,init:global_scan,"
+        "coarse_to_fine:{sigmas_m:[0.0,0.1,0.2],spread_factor:0.35}}}",
     )
     r = res["logs"]["intel"]
     d = r["diagnosis"]
@@ -114,8 +116,12 @@ def test_mcl_remedies_experiment_small(tmp_path):
         assert v["runs"] == 2 and 0 <= v["converged_runs"] <= 2
         assert len(v["curve"]) == 10 and np.all(np.isfinite(v["curve"]))
         assert v["ms_per_step"] > 0
-    assert set(r["global"]) == {"end", "c2f"}
+    assert set(r["global"]) == {"end", "c2f", "scan"}
     assert r["global"]["end"]["particles"] == 500
+    # drawn from the start scan's posterior: localized from the first step
+    scan = r["global"]["scan"]
+    assert scan["init_seconds_per_run"] > 0 and scan["converged_runs"] == 1
+    assert max(scan["curve"]) < 0.5
     text = (tmp_path / "results.md").read_text()
     assert "| fmp_dec+c2f |" in text and "Global localization" in text
     for f in ("surfaces.png", "errors.png"):

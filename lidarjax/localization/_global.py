@@ -146,7 +146,9 @@ def pose_lattice(
     try:
         free = np.asarray(free)
     except Exception as e:  # traced
-        raise ValueError("free must be a concrete bool array (pose_lattice runs on the host)") from e
+        raise ValueError(
+            "free must be a concrete bool array (pose_lattice runs on the host)"
+        ) from e
     if free.dtype != np.bool_ or free.shape != tuple(spec.shape):
         raise ValueError(
             f"free must be a bool array of the grid's shape {tuple(spec.shape)}, got "
@@ -236,7 +238,9 @@ def _heading_bin(theta, n_headings: int):
 
 
 def proposal_log_density(
-    lattice: PoseLattice, log_probs: Float[Array, " BH"], particles: Float[Array, "n 3"],
+    lattice: PoseLattice,
+    log_probs: Float[Array, " BH"],
+    particles: Float[Array, "n 3"],
     uniform_fraction: float,
 ) -> Float[Array, " n"]:
     """Log-density (per m^2 rad) of :func:`init_from_scan`'s proposal at pose vectors

@@ -240,3 +240,13 @@ def ratio(a: float | None, b: float | None) -> float | None:
     if a is None or b is None or b == 0:
         return None
     return a / b
+
+
+def remedies_config(root):
+    """``configs/mcl_remedies.yaml`` merged over ``configs/mcl.yaml`` under ``root`` (the
+    experiments' config without a Hydra run), for the localization benchmarks."""
+    from omegaconf import OmegaConf
+
+    cfg = OmegaConf.load(root / "configs" / "mcl_remedies.yaml")
+    base = OmegaConf.load(root / "configs" / "mcl.yaml")
+    return OmegaConf.merge(base, {k: v for k, v in cfg.items() if k not in ("defaults", "hydra")})

@@ -31,11 +31,10 @@ sys.path.insert(0, str(ROOT / "experiments"))
 
 import jax  # noqa: E402
 import numpy as np  # noqa: E402
-from _harness import add_policy_args, policy_from_args, time_calls  # noqa: E402
+from _harness import add_policy_args, policy_from_args, remedies_config, time_calls  # noqa: E402
 from _machine import machine_info  # noqa: E402
 from mcl import build_stats, prepare  # noqa: E402
 from mcl_remedies import LATTICE_DEFAULTS, MapCache, _free_mask  # noqa: E402
-from omegaconf import OmegaConf  # noqa: E402
 
 from lidarjax import localization as loc  # noqa: E402
 
@@ -51,9 +50,7 @@ def main(argv=None) -> dict:
     add_policy_args(ap)
     args = ap.parse_args(argv)
     policy = policy_from_args(args)
-    cfg = OmegaConf.load(ROOT / "configs" / "mcl_remedies.yaml")
-    base = OmegaConf.load(ROOT / "configs" / "mcl.yaml")
-    cfg = OmegaConf.merge(base, {k: v for k, v in cfg.items() if k not in ("defaults", "hydra")})
+    cfg = remedies_config(ROOT)
     load_start = os.getloadavg()
     n = int(args.particles)
     results = {}

@@ -32,7 +32,13 @@ sys.path.insert(0, str(ROOT / "experiments"))
 
 import equinox as eqx  # noqa: E402
 import jax  # noqa: E402
-from _harness import add_policy_args, native_info, policy_from_args, time_calls  # noqa: E402
+from _harness import (  # noqa: E402
+    add_policy_args,
+    native_info,
+    policy_from_args,
+    remedies_config,
+    time_calls,
+)
 from _machine import machine_info  # noqa: E402
 from mcl import build_stats, initial_states, prepare  # noqa: E402
 from mcl_remedies import MapCache, _variant, make_filter  # noqa: E402
@@ -48,6 +54,7 @@ DEFAULT_VARIANTS = [
     "fmp_dec+c2f",
     "fmp_dec+c2f+1000",
     "dec+3000",
+    "dec+c2f0.35+3000",
     "dec+augmented",
     "dec+kld",
     "dec+guided_gradient",
@@ -64,9 +71,7 @@ def main(argv=None) -> dict:
     add_policy_args(ap)
     args = ap.parse_args(argv)
     policy = policy_from_args(args)
-    cfg = OmegaConf.load(ROOT / "configs" / "mcl_remedies.yaml")
-    base = OmegaConf.load(ROOT / "configs" / "mcl.yaml")
-    cfg = OmegaConf.merge(base, {k: v for k, v in cfg.items() if k not in ("defaults", "hydra")})
+    cfg = remedies_config(ROOT)
     names = [v for v in args.variants.split(",") if v]
     unknown = set(names) - set(cfg.variants)
     if unknown:

@@ -94,6 +94,19 @@ class MapCache:
         self.stats, self.cfg, self.p_out = stats, cfg, p_out
         self._smoothed, self._models = {0.0: stats}, {}
 
+    def lattice(self, position_step_m: float, n_headings: int, max_hypotheses: int):
+        """The global-initialisation lattice over the free cells (built once)."""
+        key = ("lattice", float(position_step_m), int(n_headings), int(max_hypotheses))
+        if key not in self._models:
+            self._models[key] = loc.pose_lattice(
+                self.stats.spec,
+                np.asarray(_free_mask(self.stats)),
+                position_step_m=float(position_step_m),
+                n_headings=int(n_headings),
+                max_hypotheses=int(max_hypotheses),
+            )
+        return self._models[key]
+
     def get(self, model: str, smoothing_m: float = 0.0):
         if model == "end" and smoothing_m:
             raise ValueError("smoothing_m applies to the ray-traced models, not the endpoint model")
@@ -255,31 +268,20 @@ LATTICE_DEFAULTS = {
 }
 
 
-def init_from_start_scan(v: dict, cache: MapCache, az, seq, cfg, r_min, r_max, n, key):
-    """Global initialisation from the start scan (``loc.init_from_scan``): a pose lattice
-    over the free cells scored by the variant's model on statistics smoothed by
-    ``smoothing_factor`` x the block side (the endpoint model unsmoothed)."""
+def init_from_start_scan(v: dict, cache: MapCache, az, seq, cfg, r_min, r_max, n, keys):
+    """Global initialisation from the start scan (``loc.init_from_scan``), one state per
+    key, stacked: a pose lattice over the free cells scored once by the variant's model on
+    statistics smoothed by ``smoothing_factor`` x the block side (the endpoint model
+    unsmoothed)."""
     lat_cfg = {**LATTICE_DEFAULTS, **dict(v.get("lattice") or {})}
     unknown = set(lat_cfg) - set(LATTICE_DEFAULTS)
     if unknown:
         raise ValueError(
             f"lattice keys {sorted(unknown)} unknown; allowed {sorted(LATTICE_DEFAULTS)}"
         )
-    key_l = (
-        "lattice",
-        lat_cfg["position_step_m"],
-        lat_cfg["n_headings"],
-        lat_cfg["max_hypotheses"],
+    lattice = cache.lattice(
+        lat_cfg["position_step_m"], lat_cfg["n_headings"], lat_cfg["max_hypotheses"]
     )
-    if key_l not in cache._models:
-        cache._models[key_l] = loc.pose_lattice(
-            cache.stats.spec,
-            np.asarray(_free_mask(cache.stats)),
-            position_step_m=float(lat_cfg["position_step_m"]),
-            n_headings=int(lat_cfg["n_headings"]),
-            max_hypotheses=int(lat_cfg["max_hypotheses"]),
-        )
-    lattice = cache._models[key_l]
     sigma = 0.0 if v["model"] == "end" else float(lat_cfg["smoothing_factor"]) * lattice.step_m
     scorer = loc.ScanModel(
         cache.get(v["model"], sigma),
@@ -289,14 +291,20 @@ def init_from_start_scan(v: dict, cache: MapCache, az, seq, cfg, r_min, r_max, n
         ray_floor=float(cfg.ray_floor),
         chunk_size=int(cfg.filter.chunk_size),
     )
-    return loc.init_from_scan(
-        n,
-        lattice,
-        scorer,
-        seq["z0"],
-        key=key,
-        uniform_fraction=float(lat_cfg["uniform_fraction"]),
-    )
+    scores = loc.lattice_scores(lattice, scorer, seq["z0"])
+    states = [
+        loc.init_from_scan(
+            n,
+            lattice,
+            scorer,
+            seq["z0"],
+            key=k,
+            uniform_fraction=float(lat_cfg["uniform_fraction"]),
+            scores=scores,
+        )
+        for k in keys
+    ]
+    return jax.tree.map(lambda *x: jnp.stack(x), *states)
 
 
 def run_variant(v: dict, cache: MapCache, az, seq, key, cfg, r_min, r_max, runs: int) -> dict:
@@ -312,13 +320,8 @@ def run_variant(v: dict, cache: MapCache, az, seq, key, cfg, r_min, r_max, runs:
         states = jax.tree.map(lambda *x: jnp.stack(x), *states)
     elif v.get("init") == "global_scan":
         t_init = time.perf_counter()
-        states = [
-            init_from_start_scan(
-                v, cache, az, seq, cfg, r_min, r_max, n, jax.random.fold_in(key, 100 + r)
-            )
-            for r in range(runs)
-        ]
-        states = jax.tree.map(lambda *x: jnp.stack(x), *states)
+        keys = [jax.random.fold_in(key, 100 + r) for r in range(runs)]
+        states = init_from_start_scan(v, cache, az, seq, cfg, r_min, r_max, n, keys)
         jax.block_until_ready(states)
         init_seconds = (time.perf_counter() - t_init) / runs
     else:

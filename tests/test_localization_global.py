@@ -223,6 +223,15 @@ def test_init_from_scan_is_deterministic_and_checks_inputs():
         np.asarray(a.particles.parameters()), np.asarray(b.particles.parameters())
     )
     assert np.array_equal(np.asarray(a.log_weights), np.asarray(b.log_weights))
+    # precomputed scores (one scoring for several draws) give the same state
+    sc = lattice_scores(lat, model, jnp.zeros(2))
+    c = init_from_scan(50, lat, model, jnp.zeros(2), key=jax.random.PRNGKey(3), scores=sc)
+    assert np.array_equal(
+        np.asarray(a.particles.parameters()), np.asarray(c.particles.parameters())
+    )
+    assert np.array_equal(np.asarray(a.log_weights), np.asarray(c.log_weights))
+    with pytest.raises(ValueError, match="scores must have shape"):
+        init_from_scan(5, lat, model, jnp.zeros(2), key=jax.random.PRNGKey(0), scores=sc[:-1])
     with pytest.raises(ValueError, match="n must"):
         init_from_scan(0, lat, model, jnp.zeros(2), key=jax.random.PRNGKey(0))
     with pytest.raises(ValueError, match="uniform_fraction"):

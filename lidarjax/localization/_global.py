@@ -277,6 +277,7 @@ def init_from_scan(
     key: PRNGKeyArray,
     uniform_fraction: float = 0.1,
     chunk_size: int = 8192,
+    scores: Float[ArrayLike, " BH"] | None = None,
 ) -> ParticleState:
     """``n`` weighted SE(2) particles approximating ``p(x | z)`` for one scan ``z`` under
     a prior uniform over the lattice's free cells and all headings (global localization
@@ -299,6 +300,9 @@ def init_from_scan(
         uniform_fraction: share of the particles drawn uniformly (defensive component),
             in ``[0, 1]``; ``round(uniform_fraction n)`` particles.
         chunk_size: lattice poses per evaluation.
+        scores: the lattice's :func:`lattice_scores` for this ``scan_model`` and scan,
+            if already computed (e.g. once for several independent draws); default:
+            computed here.
 
     Returns:
         A :class:`ParticleState` with normalised importance log-weights.
@@ -315,21 +319,33 @@ def init_from_scan(
     chunk_size = _check_chunk(chunk_size)
     n_uni = int(round(float(uniform_fraction) * n))
     frac = n_uni / n  # the mixture weight actually used (deterministic split)
-    return _init_from_scan(n, n_uni, frac, lattice, scan_model, ranges, key, chunk_size)
+    if scores is None:
+        scores = lattice_scores(lattice, scan_model, ranges, chunk_size)
+    scores = jnp.asarray(scores)
+    if scores.shape != (lattice.n_hypotheses,):
+        raise ValueError(
+            f"scores must have shape ({lattice.n_hypotheses},) (lattice_scores), got {scores.shape}"
+        )
+    return _init_from_scan(n, n_uni, frac, lattice, scan_model, ranges, key, scores)
 
 
 @eqx.filter_jit
-def _init_from_scan(n, n_uni, frac, lattice, scan_model, ranges, key, chunk_size):
+def _init_from_scan(n, n_uni, frac, lattice, scan_model, ranges, key, scores):
     spec = lattice.spec
     dtype = lattice.positions.dtype
     res = spec.resolution
     k_cat, k_cell, k_pos, k_head, k_uc, k_up, k_uh, k_next = jax.random.split(key, 8)
-    scores = lattice_scores(lattice, scan_model, ranges, chunk_size).astype(dtype)
+    scores = eqx.error_if(scores, jnp.any(jnp.isnan(scores)), "scores contain NaN").astype(dtype)
     h_count = lattice.n_headings
     log_mass = jnp.repeat(jnp.log(lattice.counts.astype(dtype)), h_count) + scores
     lse = jax.nn.logsumexp(log_mass)
     lse = eqx.error_if(lse, ~jnp.isfinite(lse), "no lattice hypothesis has a finite score")
     log_probs = log_mass - lse
+
+    def in_cells(cell, k_in):
+        """Uniform points inside the given flat cells."""
+        ij = jnp.stack(jnp.unravel_index(cell, spec.shape), axis=-1).astype(dtype)
+        return spec.origin + (ij + jax.random.uniform(k_in, (cell.shape[0], 2), dtype)) * res
 
     def draw_lattice(m):
         cdf = jnp.cumsum(jnp.exp(log_probs))
@@ -340,18 +356,13 @@ def _init_from_scan(n, n_uni, frac, lattice, scan_model, ranges, key, chunk_size
         r = jnp.minimum(
             jnp.floor(jax.random.uniform(k_cell, (m,), dtype) * cnt).astype(jnp.int32), cnt - 1
         )
-        cell = lattice.block_cells[lattice.block_start[b] + r]
-        ij = jnp.stack(jnp.unravel_index(cell, spec.shape), axis=-1).astype(dtype)
-        xy = spec.origin + (ij + jax.random.uniform(k_pos, (m, 2), dtype)) * res
+        xy = in_cells(lattice.block_cells[lattice.block_start[b] + r], k_pos)
         d = lattice.heading_step
         th = lattice.headings()[h] + (jax.random.uniform(k_head, (m,), dtype) - 0.5) * d
         return jnp.concatenate([xy, th[:, None]], axis=-1)
 
     def draw_uniform(m):
-        r = jax.random.randint(k_uc, (m,), 0, lattice.n_free)
-        cell = lattice.block_cells[r]
-        ij = jnp.stack(jnp.unravel_index(cell, spec.shape), axis=-1).astype(dtype)
-        xy = spec.origin + (ij + jax.random.uniform(k_up, (m, 2), dtype)) * res
+        xy = in_cells(lattice.block_cells[jax.random.randint(k_uc, (m,), 0, lattice.n_free)], k_up)
         th = jax.random.uniform(k_uh, (m,), dtype, minval=-jnp.pi, maxval=jnp.pi)
         return jnp.concatenate([xy, th[:, None]], axis=-1)
 

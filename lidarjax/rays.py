@@ -108,17 +108,39 @@ def check_finite(x: ArrayLike, name: str) -> Array:
     return jnp.asarray(_reject(x, lambda xp, a: ~xp.isfinite(a), f"{name} must be finite"))
 
 
+ROTATION_NORM_TOL = 1e-3  # |norm - 1| allowed for a pose's unit complex / quaternion
+
+
 def check_pose(T, name: str = "T_world_sensor"):
     """Return the ``jaxlie`` group element ``T`` with its parameters checked to be finite
-    (a NaN or infinite heading, rotation or translation: ``ValueError`` when concrete,
-    ``eqx.error_if`` when traced; use the returned pose).
+    (a NaN or infinite heading, rotation or translation) and its rotation to be normalised
+    (unit complex or quaternion of norm 1 within :data:`ROTATION_NORM_TOL`; an unnormalised
+    one would scale every ray direction): ``ValueError`` when concrete, ``eqx.error_if``
+    when traced; use the returned pose.
 
     Args:
         T: a ``jaxlie`` group element (``SE2``, ``SE3``, ...), any batch axes.
         name: the argument's name, quoted in the error message.
     """
     message = f"{name} must be finite (NaN or infinite pose parameters)"
-    return jax.tree.map(lambda p: _reject(p, lambda xp, a: ~xp.isfinite(a), message), T)
+    T = jax.tree.map(lambda p: _reject(p, lambda xp, a: ~xp.isfinite(a), message), T)
+    n_rot = (
+        {2: 2, 4: 4}.get(T.rotation().parameters().shape[-1]) if hasattr(T, "rotation") else None
+    )
+    if n_rot is None:
+        return T
+
+    def unnormalised(xp, params):
+        norm = xp.sqrt(xp.sum(params[..., :n_rot] ** 2, axis=-1, keepdims=True))
+        return xp.broadcast_to(xp.abs(norm - 1) > ROTATION_NORM_TOL, params.shape)
+
+    unit = "complex number" if n_rot == 2 else "quaternion"
+    message = (
+        f"{name} has an unnormalised rotation: its unit {unit} must have norm 1 "
+        f"(+- {ROTATION_NORM_TOL}); normalise it (e.g. jaxlie's .normalize()) or build it with "
+        "from_xy_theta / from_rotation_and_translation"
+    )
+    return jax.tree.map(lambda p: _reject(p, unnormalised, message), T)
 
 
 def _check_ranges(ranges, kind, name: str):

@@ -23,7 +23,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .._math import mul0
-from ..rays import is_concrete
+from ..rays import _reject, is_concrete
 from ..raytrace import (
     CellTerm,
     GridSpec,
@@ -53,6 +53,22 @@ def _check_scalar(value, name: str, *, lo: float = 0.0, hi: float | None = None)
         raise ValueError(f"{name} must be finite and {bound}, got {v}")
 
 
+def _check_values(x, bad, message: str) -> None:
+    """Raise ``ValueError(message ...)`` if concrete ``x`` has an entry with ``bad(xp, x)``
+    (traced values, e.g. a map rebuilt inside ``grad`` by :func:`~lidarjax.maps.fit`, are
+    not checked)."""
+    if is_concrete(x):
+        _reject(x, bad, message)
+
+
+def _nonneg_finite(xp, a):
+    return ~xp.isfinite(a) | (a < 0)
+
+
+def _not_prob(xp, a):
+    return ~((a >= 0) & (a <= 1))
+
+
 class DecayRateMap(AbstractDecayRateField):
     """Decay-rate map (dissertation Sec. 7.3): a piecewise-constant decay rate per cell.
 
@@ -80,6 +96,10 @@ class DecayRateMap(AbstractDecayRateField):
             )
         if jnp.shape(self.outside_rate) != ():
             raise ValueError(f"outside_rate must be a scalar, got {jnp.shape(self.outside_rate)}")
+        _check_values(self.rates, _nonneg_finite, "rates (1/m) must be finite and >= 0")
+        _check_values(
+            self.outside_rate, _nonneg_finite, "outside_rate (1/m) must be finite and >= 0"
+        )
 
     @property
     def dim(self) -> int:
@@ -119,7 +139,6 @@ class DecayRateMap(AbstractDecayRateField):
     def with_parameters(self, params: Float[Array, "*shape"]) -> DecayRateMap:
         """The map with rates ``params**2``."""
         return DecayRateMap(spec=self.spec, rates=params**2, outside_rate=self.outside_rate)
-
 
 
 def rate_term(m: DecayRateMap):
@@ -162,6 +181,8 @@ class ReflectionMap(eqx.Module):
             )
         if jnp.shape(self.unknown_prob) != ():
             raise ValueError(f"unknown_prob must be a scalar, got {jnp.shape(self.unknown_prob)}")
+        _check_values(self.probs, _not_prob, "probs must be probabilities in [0, 1]")
+        _check_values(self.unknown_prob, _not_prob, "unknown_prob must be a probability in [0, 1]")
 
 
 class EndpointMap(eqx.Module):
@@ -195,6 +216,17 @@ class EndpointMap(eqx.Module):
                     f"{name} must have the grid shape {self.spec.shape}, got "
                     f"{jnp.shape(getattr(self, name))}"
                 )
+        _check_values(
+            self.distances, lambda xp, a: xp.isnan(a) | (a < 0), "distances (m) must be >= 0"
+        )
+        _check_values(
+            self.sigma_m, lambda xp, a: ~xp.isfinite(a) | (a <= 0), "sigma_m must be finite and > 0"
+        )
+        for name in ("z_hit", "z_rand"):
+            _check_values(getattr(self, name), _nonneg_finite, f"{name} must be finite and >= 0")
+        _check_values(
+            self.p_out, lambda xp, a: ~((a >= 0) & (a < 1)), "p_out must be a probability in [0, 1)"
+        )
 
     def hit_field(self) -> Float[Array, "*shape"]:
         """``[*shape]`` Gaussian term ``N(dist_i; 0, sigma)`` (1/m) per cell."""

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import functools
 import math
+import operator
 from collections.abc import Sequence
 from typing import Literal
 
@@ -38,6 +39,27 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 from ..rays import HIT, SUB, SUP, RayBatch, is_concrete
 from . import _native
 from ._primitives import clip_to_box, n_chunks_for, pad_to_chunks, slabs
+
+
+def _shape_entry(s) -> int:
+    """One entry of a grid shape as an int (``ValueError`` for floats, bools, others)."""
+    if isinstance(s, bool | np.bool_):
+        raise ValueError(f"shape entries must be ints, got {s!r}")
+    try:
+        return operator.index(s)
+    except TypeError:
+        raise ValueError(f"shape entries must be ints, got {s!r}") from None
+
+
+def _host_resolution(resolution) -> float:
+    """A concrete cell size (m) as a float, or ``ValueError`` naming it."""
+    try:
+        res = float(resolution)
+    except (TypeError, ValueError):
+        raise ValueError(f"resolution must be a positive finite number, got {resolution!r}")
+    if not (np.isfinite(res) and res > 0):
+        raise ValueError(f"resolution must be a positive finite number, got {res}")
+    return res
 
 
 class GridSpec(eqx.Module):
@@ -54,27 +76,52 @@ class GridSpec(eqx.Module):
     shape: tuple[int, ...] = eqx.field(static=True)
 
     def __init__(self, origin: ArrayLike, resolution: float, shape: Sequence[int]):
-        shape = tuple(int(s) for s in shape)
+        """Validate and store the grid.
+
+        Raises:
+            ValueError: ``shape`` is not 2 or 3 positive integers (a float such as 4.7 is
+                rejected, not truncated), ``origin`` has the wrong shape or a non-finite
+                value, or ``resolution`` is not a positive finite number. Traced values
+                are checked at run time (``eqx.error_if``).
+        """
+        shape = tuple(_shape_entry(s) for s in shape)
         if len(shape) not in (2, 3) or any(s <= 0 for s in shape):
             raise ValueError(f"shape must be 2 or 3 positive ints, got {shape}")
         origin = jnp.asarray(origin, dtype=jnp.result_type(float))
         if origin.shape != (len(shape),):
             raise ValueError(f"origin must have shape ({len(shape)},), got {origin.shape}")
+        if is_concrete(origin):
+            if not np.all(np.isfinite(np.asarray(origin))):
+                raise ValueError(f"origin must be finite, got {np.asarray(origin)}")
+        else:
+            origin = eqx.error_if(origin, ~jnp.all(jnp.isfinite(origin)), "origin must be finite")
+        resolution = jnp.asarray(resolution, dtype=origin.dtype)
+        if resolution.shape != ():
+            raise ValueError(f"resolution must be a scalar, got shape {resolution.shape}")
         if is_concrete(resolution):
             res = float(resolution)
             if not (np.isfinite(res) and res > 0):
                 raise ValueError(f"resolution must be a positive finite number, got {res}")
+        else:
+            resolution = eqx.error_if(
+                resolution,
+                ~(jnp.isfinite(resolution) & (resolution > 0)),
+                "resolution must be a positive finite number",
+            )
         self.origin = origin
-        self.resolution = jnp.asarray(resolution, dtype=origin.dtype)
+        self.resolution = resolution
         self.shape = shape
 
     @classmethod
     def from_bounds(cls, lower: ArrayLike, upper: ArrayLike, resolution: float) -> GridSpec:
         """Smallest grid with lower corner ``lower`` (m) that covers ``upper`` (m)."""
+        resolution = _host_resolution(resolution)
         lo = np.asarray(lower, dtype=np.float64)
         hi = np.asarray(upper, dtype=np.float64)
         if lo.shape != hi.shape or lo.ndim != 1:
             raise ValueError(f"lower and upper must be [d] vectors, got {lo.shape}, {hi.shape}")
+        if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
+            raise ValueError(f"lower and upper must be finite, got {lo}, {hi}")
         if np.any(hi <= lo):
             raise ValueError(f"upper {hi} must exceed lower {lo} on every axis")
         shape = np.maximum(np.ceil((hi - lo) / resolution - 1e-9), 1).astype(int)
@@ -84,6 +131,10 @@ class GridSpec(eqx.Module):
     def covering(cls, points: ArrayLike, resolution: float, margin: float = 0.0) -> GridSpec:
         """Grid covering a point set ``[n d]`` (m) plus ``margin`` (m) on each side, with
         its lower corner snapped to a multiple of ``resolution``."""
+        resolution = _host_resolution(resolution)
+        margin = float(margin)
+        if not (np.isfinite(margin) and margin >= 0):
+            raise ValueError(f"margin must be a finite number >= 0, got {margin}")
         p = np.asarray(points, dtype=np.float64).reshape(-1, np.shape(points)[-1])
         p = p[np.all(np.isfinite(p), axis=1)]
         if p.size == 0:

@@ -31,6 +31,7 @@
 #include <limits>
 #include <string>
 #include <thread>
+#include <type_traits>
 #include <vector>
 
 #include "xla/ffi/api/ffi.h"
@@ -142,55 +143,146 @@ inline void setup(const Grid<T, D>& g, const T* o, const T* din, T length, Walk<
   w.active = active;
 }
 
-// The whole walk of one ray set up in `w`: visit(flat, cell, seg, valid, last) for each
-// step (the same sequence as repeated step() calls), with the walk state in local
-// variables so that the visitor's stores cannot alias it (keeps it in registers).
-// Returns true if the walk was still active at the grid's cell bound (an overrun).
-template <typename T, int D, typename F>
-inline bool walk_ray(const Grid<T, D>& g, const Walk<T, D>& w, F&& visit) {
-  T t_axis[D], t_first[D], t_scale[D];
-  int32_t cell[D], c0[D], prev[D];
-  int64_t dflat[D];
-  bool moving[D];
+// The walks of rays [b, e), W rays at a time in the lanes of vector registers (GCC vector
+// extensions: SSE2 on a baseline x86-64 build, AVX with -march, NEON on ARM). One ray's
+// walk is a serial chain (crossing times -> minimum -> comparison -> step), so a lone walk
+// leaves the core idle most of the time; W independent rays stepped together fill it, and
+// each step is branch-free (which axes cross is data). Every lane performs exactly the
+// operations of one step of the JAX path's `_step`, in the same order: the crossing time
+// of axis k is t_first + n_k * |t_scale| with n_k the number of steps taken along k (held
+// as a float, exactly: (cell - c0) * t_scale has the same magnitude and sign), and a
+// lane is inside the grid while n_k <= the steps left to the border along k.
+//
+// The kernel object K provides, for lane j:
+//   bool prep(i, w): set up ray i in `w`; false skips the ray (nothing else is called).
+//   void start(j, i, w): ray i (set up in w) begins in lane j.
+//   void body(here, seg, valid, last): one step of all lanes (vectors; `valid` and `last`
+//     masks, dead lanes have valid == last == 0 and seg == 0, here a valid cell).
+//   void finish(j, end): the ray in lane j is done (also for a ray that visits no cell).
+template <typename T, int D>
+struct End {
+  int64_t flat;    // flat index of the final step's cell
+  bool over;       // still active at the grid's cell bound (impossible with finite input)
+  bool last;       // the final step was a valid step (its cell is the ray's last cell)
+  T seg;           // length of the final step
+  int32_t cell[D]; // cell of the final step
+};
+
+// Vectors of W lanes of T (V) and the matching masks and integers (M: int32 for float,
+// int64 for double, the element type of a comparison of two V).
+template <typename T, int W>
+struct Lanes {
+  using I = std::conditional_t<sizeof(T) == 4, int32_t, int64_t>;
+  typedef T V __attribute__((vector_size(W * sizeof(T))));
+  typedef I M __attribute__((vector_size(W * sizeof(T))));
+};
+
+template <typename T, int D, int W, typename K>
+inline void walk_lanes(const Grid<T, D>& g, int64_t b, int64_t e, K& kern) {
+  using I = typename Lanes<T, W>::I;
+  using V = typename Lanes<T, W>::V;
+  using M = typename Lanes<T, W>::M;
+  const T inf = std::numeric_limits<T>::infinity();
+  V ta[D], tf[D], ts[D], nk[D], room[D];
+  M flat, df[D], it, live;
+  V t, t_end, t_last, tol;
+  int32_t c0[W][D], dir[W][D];
   for (int k = 0; k < D; ++k) {
-    t_axis[k] = w.t_axis[k];
-    t_first[k] = w.t_first[k];
-    t_scale[k] = w.t_scale[k];
-    cell[k] = w.cell[k];
-    c0[k] = w.c0[k];
-    moving[k] = w.moving[k];
-    dflat[k] = w.up[k] ? g.stride[k] : -g.stride[k];
+    ta[k] = tf[k] = room[k] = V{} + inf;
+    ts[k] = nk[k] = V{};
+    df[k] = M{};
   }
-  int64_t flat = w.flat;
-  T t = w.t;
-  const T t_end = w.t_end, tol = w.tol;
-  bool active = w.active;
-  for (int64_t it = 0; it < g.bound && active; ++it) {
-    T t_min = t_axis[0];
-    for (int k = 1; k < D; ++k) t_min = std::min(t_min, t_axis[k]);
-    const bool last = t_min >= t_end - tol;
-    const T t_stop = last ? t_end : t_min;
-    T seg = std::max(t_stop - t, T(0));
-    const bool valid = (seg > tol) || last;  // active here
-    if (!valid) seg = T(0);
-    const int64_t here = flat;
-    bool inside = true;
-    const T lim = t_min + tol;
-    for (int k = 0; k < D; ++k) {
-      prev[k] = cell[k];
-      if (moving[k] && t_axis[k] <= lim) {
-        const int32_t c = cell[k] + (dflat[k] > 0 ? 1 : -1);
-        cell[k] = c;
-        flat += dflat[k];
-        t_axis[k] = t_first[k] + T(c - c0[k]) * t_scale[k];
-        inside = inside && (c >= 0) && (c < g.n[k]);
+  flat = it = live = M{};
+  t = t_end = tol = V{};
+  t_last = V{} - inf;
+  int64_t next = b;
+  Walk<T, D> w;
+  // Load the next ray that walks into lane j; false when none is left (lane j is dead).
+  auto load = [&](int j) -> bool {
+    while (next < e) {
+      const int64_t i = next++;
+      if (!kern.prep(i, w)) continue;
+      kern.start(j, i, w);
+      if (!w.active) {
+        End<T, D> end{w.flat, false, false, T(0), {}};
+        for (int k = 0; k < D; ++k) end.cell[k] = w.cell[k];
+        kern.finish(j, end);
+        continue;
       }
+      for (int k = 0; k < D; ++k) {
+        tf[k][j] = w.t_first[k];
+        ts[k][j] = std::abs(w.t_scale[k]);
+        ta[k][j] = w.t_axis[k];
+        nk[k][j] = T(0);
+        room[k][j] = !w.moving[k] ? inf : T(w.up[k] ? g.n[k] - 1 - w.cell[k] : w.cell[k]);
+        df[k][j] = !w.moving[k] ? I(0) : I(w.up[k] ? g.stride[k] : -g.stride[k]);
+        c0[j][k] = w.cell[k];
+        dir[j][k] = w.up[k] ? 1 : -1;
+      }
+      flat[j] = I(w.flat);
+      t[j] = w.t;
+      t_end[j] = w.t_end;
+      t_last[j] = w.t_end - w.tol;
+      tol[j] = w.tol;
+      it[j] = 0;
+      live[j] = -1;
+      return true;
+    }
+    // dead lane: every step is invalid with length 0 in cell 0
+    for (int k = 0; k < D; ++k) {
+      ta[k][j] = tf[k][j] = room[k][j] = inf;
+      ts[k][j] = nk[k][j] = T(0);
+      df[k][j] = 0;
+    }
+    flat[j] = 0;
+    t[j] = t_end[j] = tol[j] = T(0);
+    t_last[j] = -inf;
+    live[j] = 0;
+    return false;
+  };
+  int n_live = 0;
+  for (int j = 0; j < W; ++j) n_live += load(j);
+  const V zero = V{}, one = V{} + T(1);
+  const M bound = M{} + I(g.bound);
+  while (n_live > 0) {
+    V t_min = ta[0];
+    for (int k = 1; k < D; ++k) t_min = ta[k] < t_min ? ta[k] : t_min;
+    const M last = t_min >= t_last;
+    const V t_stop = last ? t_end : t_min;
+    const V diff = t_stop - t;
+    V seg = diff < zero ? zero : diff;
+    const M valid = ((seg > tol) | last) & live;
+    seg = valid ? seg : zero;
+    const M here = flat;
+    const V lim = t_min + tol;
+    M inside = live;
+    V n_prev[D];
+    for (int k = 0; k < D; ++k) {
+      n_prev[k] = nk[k];
+      const M s = ta[k] <= lim;
+      nk[k] += s ? one : zero;
+      flat += s & df[k];
+      ta[k] = tf[k] + nk[k] * ts[k];
+      inside &= nk[k] <= room[k];
     }
     t = t_stop;
-    active = !last && inside;
-    visit(here, prev, seg, valid, valid && (last || !inside));
+    const M active = ~last & inside;
+    it += 1;
+    const M done = live & (~active | (it >= bound));
+    kern.body(here, seg, valid, valid & ~active);
+    unsigned bits = 0;
+    for (int j = 0; j < W; ++j) bits |= unsigned(done[j] != 0) << j;
+    if (bits) {
+      for (int j = 0; j < W; ++j) {
+        if (!((bits >> j) & 1u)) continue;
+        End<T, D> end{int64_t(here[j]), active[j] != 0, valid[j] != 0 && active[j] == 0, seg[j], {}};
+        for (int k = 0; k < D; ++k)
+          end.cell[k] = c0[j][k] + dir[j][k] * static_cast<int32_t>(n_prev[k][j]);
+        kern.finish(j, end);
+        if (!load(j)) --n_live;
+      }
+    }
   }
-  return active;
 }
 
 template <typename T, int D>
@@ -250,6 +342,10 @@ void parallel_blocks(int64_t n, int64_t threads, int64_t block, Fn fn) {
 }
 
 constexpr int64_t kBlock = 256;
+// Rays walked together per thread: one 16-byte vector (SSE2 / NEON) of lanes. Wider
+// vectors without -march (two 16-byte halves per operation) were slower.
+template <typename T>
+constexpr int kLanesOf = 16 / sizeof(T);
 
 constexpr int32_t kHit = 0, kSub = 1, kSup = 2;  // lidarjax.rays.HIT, SUB, SUP
 
@@ -277,6 +373,7 @@ ffi::Error Accumulate(ffi::Buffer<DT> spec_lo, ffi::Buffer<DT> spec_res, ffi::Bu
                       int64_t threads, ffi::ResultBuffer<DT> r_out,
                       ffi::ResultBuffer<ffi::S32> h_out, ffi::ResultBuffer<ffi::S32> m_out) {
   using T = ffi::NativeType<DT>;
+  constexpr int kLanes = kLanesOf<T>;
   Grid<T, D> g;
   auto dims = r_out->dimensions();
   ffi::Error err = make_grid<T, D>(spec_lo.typed_data(), spec_res.typed_data(), dims.begin(),
@@ -319,42 +416,54 @@ ffi::Error Accumulate(ffi::Buffer<DT> spec_lo, ffi::Buffer<DT> spec_res, ffi::Bu
   std::fill(H, H + nc, 0);
   std::fill(V, V + nc, 0);
   std::vector<char> overrun(threads, 0);
-  parallel_blocks(n, threads, kBlock, [&](int64_t t, int64_t b, int64_t e) {
-    T* r = t == 0 ? R : r_priv[t - 1].data();
-    int32_t* h = t == 0 ? H : h_priv[t - 1].data();
-    int32_t* v = t == 0 ? V : v_priv[t - 1].data();
-    Walk<T, D> w;
-    for (int64_t i = b; i < e; ++i) {
+  using LV = typename Lanes<T, kLanes>::V;
+  using LM = typename Lanes<T, kLanes>::M;
+  struct Kernel {
+    const T *o, *dir, *rng;
+    const int32_t* kind;
+    T r_max;
+    bool sub_as_hit;
+    T* r;
+    int32_t *h, *v;
+    char* overrun;
+    bool hit_next;
+    bool hit[kLanes];
+    bool prep(int64_t i, Walk<T, D>& w) {
       const int32_t k = kind[i];
-      bool is_hit;
-      T len;
-      if (k == kHit || (k == kSub && sub_as_hit)) {
-        is_hit = true;
-        len = rng[i];
-      } else if (k == kSup) {
-        is_hit = false;
-        len = r_max;
-      } else {
-        continue;
-      }
-      setup<T, D>(g, o + i * D, dir + i * D, len, w);
-      const bool ends_inside = is_hit && w.active && (w.t_end >= len - w.tol);
-      bool ended = false;
-      int64_t last_flat = 0;
-      const bool over = walk_ray<T, D>(
-          g, w, [&](int64_t flat, const int32_t*, T seg, bool valid, bool last) {
-            if (valid) {
-              r[flat] += seg;
-              v[flat] += 1;
-              if (last) {
-                last_flat = flat;
-                ended = true;
-              }
-            }
-          });
-      if (over) overrun[t] = 1;
-      if (ends_inside && ended) h[last_flat] += 1;
+      const bool is_hit = k == kHit || (k == kSub && sub_as_hit);
+      if (!is_hit && k != kSup) return false;
+      const T len = is_hit ? rng[i] : r_max;
+      setup<T, D>(*grid, o + i * D, dir + i * D, len, w);
+      hit_next = is_hit && w.active && (w.t_end >= len - w.tol);
+      return true;
     }
+    void start(int j, int64_t, const Walk<T, D>&) { hit[j] = hit_next; }
+    void body(const LM& here, const LV& seg, const LM& valid, const LM&) {
+      for (int j = 0; j < kLanes; ++j) {
+        r[here[j]] += seg[j];  // seg is 0 unless valid
+        v[here[j]] -= valid[j];  // valid is -1 or 0
+      }
+    }
+    void finish(int j, const End<T, D>& end) {
+      if (end.over) *overrun = 1;
+      if (hit[j] && end.last) h[end.flat] += 1;
+    }
+    const Grid<T, D>* grid;
+  };
+  parallel_blocks(n, threads, kBlock, [&](int64_t t, int64_t b, int64_t e) {
+    Kernel kern;
+    kern.o = o;
+    kern.dir = dir;
+    kern.rng = rng;
+    kern.kind = kind;
+    kern.r_max = r_max;
+    kern.sub_as_hit = sub_as_hit;
+    kern.r = t == 0 ? R : r_priv[t - 1].data();
+    kern.h = t == 0 ? H : h_priv[t - 1].data();
+    kern.v = t == 0 ? V : v_priv[t - 1].data();
+    kern.overrun = &overrun[t];
+    kern.grid = &g;
+    walk_lanes<T, D, kLanes>(g, b, e, kern);
   });
   for (char c : overrun)
     if (c)
@@ -402,6 +511,7 @@ ffi::Error Fold(ffi::Buffer<DT> spec_lo, ffi::Buffer<DT> spec_res, ffi::Buffer<D
                 ffi::ResultBuffer<DT> grid_len_out, ffi::ResultBuffer<ffi::PRED> any_valid_out,
                 ffi::ResultBuffer<DT> t_start_out, ffi::ResultBuffer<DT> t_end_out) {
   using T = ffi::NativeType<DT>;
+  constexpr int kLanes = kLanesOf<T>;
   Grid<T, D> g;
   auto tdims = tables.dimensions();
   if (tdims.size() != D + 1)
@@ -436,36 +546,66 @@ ffi::Error Fold(ffi::Buffer<DT> spec_lo, ffi::Buffer<DT> spec_res, ffi::Buffer<D
   threads = clamp_threads(threads, n, kBlock);
   const int64_t nc = g.ncells;
   std::vector<char> overrun(threads, 0);
-  parallel_blocks(n, threads, kBlock, [&](int64_t t, int64_t b, int64_t e) {
-    Walk<T, D> w;
-    for (int64_t i = b; i < e; ++i) {
-      setup<T, D>(g, o + i * D, dir + i * D, len[i], w);
-      T acc = T(0), llen = T(0), glen = T(0);
-      bool anyv = false;
-      int32_t lc[D];
-      for (int k = 0; k < D; ++k) lc[k] = w.cell[k];
-      const bool over = walk_ray<T, D>(
-          g, w, [&](int64_t flat, const int32_t* cell, T seg, bool valid, bool last) {
-            if (valid) {
-              if (!last) {
-                acc = acc + cell_term<T, MODE>(tab, nc, flat, seg);
-              } else {
-                for (int k = 0; k < D; ++k) lc[k] = cell[k];
-                llen = seg;
-              }
-              anyv = true;
-            }
-            glen = glen + seg;
-          });
-      if (over) overrun[t] = 1;
-      body[i] = acc;
-      for (int k = 0; k < D; ++k) last_cell[i * D + k] = lc[k];
-      last_len[i] = llen;
-      grid_len[i] = glen;
-      any_valid[i] = anyv;
+  using LV = typename Lanes<T, kLanes>::V;
+  using LM = typename Lanes<T, kLanes>::M;
+  struct Kernel {
+    const Grid<T, D>* grid;
+    const T *tab, *o, *dir, *len;
+    int64_t nc;
+    T *body_out, *last_len, *grid_len, *t_start, *t_end;
+    int32_t* last_cell;
+    bool* any_valid;
+    char* overrun;
+    T acc[kLanes], glen[kLanes];
+    bool anyv[kLanes];
+    int32_t lc[kLanes][D];
+    int64_t ray[kLanes];
+    bool prep(int64_t i, Walk<T, D>& w) {
+      setup<T, D>(*grid, o + i * D, dir + i * D, len[i], w);
+      return true;
+    }
+    void start(int j, int64_t i, const Walk<T, D>& w) {
+      ray[j] = i;
+      acc[j] = glen[j] = T(0);
+      anyv[j] = false;
+      for (int k = 0; k < D; ++k) lc[j][k] = w.cell[k];
       t_start[i] = w.t_start;
       t_end[i] = w.t_end;
     }
+    void body(const LM& here, const LV& seg, const LM& valid, const LM& last) {
+      for (int j = 0; j < kLanes; ++j) {
+        if (valid[j] & ~last[j]) acc[j] = acc[j] + cell_term<T, MODE>(tab, nc, here[j], seg[j]);
+        anyv[j] = anyv[j] | (valid[j] != 0);
+        glen[j] = glen[j] + seg[j];
+      }
+    }
+    void finish(int j, const End<T, D>& end) {
+      if (end.over) *overrun = 1;
+      const int64_t i = ray[j];
+      body_out[i] = acc[j];
+      for (int k = 0; k < D; ++k) last_cell[i * D + k] = end.last ? end.cell[k] : lc[j][k];
+      last_len[i] = end.last ? end.seg : T(0);
+      grid_len[i] = glen[j];
+      any_valid[i] = anyv[j];
+    }
+  };
+  parallel_blocks(n, threads, kBlock, [&](int64_t t, int64_t b, int64_t e) {
+    Kernel kern;
+    kern.grid = &g;
+    kern.tab = tab;
+    kern.o = o;
+    kern.dir = dir;
+    kern.len = len;
+    kern.nc = nc;
+    kern.body_out = body;
+    kern.last_len = last_len;
+    kern.grid_len = grid_len;
+    kern.t_start = t_start;
+    kern.t_end = t_end;
+    kern.last_cell = last_cell;
+    kern.any_valid = any_valid;
+    kern.overrun = &overrun[t];
+    walk_lanes<T, D, kLanes>(g, b, e, kern);
   });
   for (char c : overrun)
     if (c)

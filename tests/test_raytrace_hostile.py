@@ -524,16 +524,17 @@ def _stats_at_resolution_native(res):
 
 @pytest.mark.parametrize("res", [np.nan, np.inf, 0.0, -0.5])
 def test_traced_bad_resolution_reaches_check_rays(res, decay_map):
-    """``GridSpec`` checks a concrete resolution only; a traced one is checked by the
-    walks themselves (``check_rays``) when ``accumulate`` / ``fold_rays`` run."""
+    """``GridSpec`` rejects a concrete resolution at once and a traced one at run time
+    (``eqx.error_if`` in ``GridSpec``, before the walks' own ``check_rays``); a spec that
+    bypasses ``__init__`` (``eqx.tree_at``) is still caught by the walks."""
     with pytest.raises(ValueError, match="resolution"):
         GridSpec(SPEC_LO, res, SPEC_SHAPE)
     lengths, _ = _stats_and_fold_at_resolution(SPEC_RES)
     np.testing.assert_allclose(lengths, accumulate(spec2(), good_rays()).lengths)
-    with pytest.raises(RUNTIME, match="resolution.*positive and finite"):
+    with pytest.raises(RUNTIME, match="resolution must be a positive finite number"):
         jax.block_until_ready(_stats_and_fold_at_resolution(res))
     if _native.available():
-        with pytest.raises(RUNTIME, match="resolution.*positive and finite"):
+        with pytest.raises(RUNTIME, match="resolution must be a positive finite number"):
             jax.block_until_ready(_stats_at_resolution_native(res))
     # a map whose spec carries the bad resolution (tree_at skips GridSpec.__init__)
     bad_map = eqx.tree_at(lambda m: m.spec.resolution, decay_map, jnp.asarray(res))

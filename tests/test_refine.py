@@ -80,7 +80,7 @@ def test_scan_likelihood_closed_form_on_linear_field():
     res, nx, ny = 0.2, 60, 40
     origin = np.array([-6.0, -4.0])
     xc = origin[0] + (np.arange(nx) + 0.5) * res
-    a, b = 0.5, 0.1
+    a, b = 0.7, 0.1  # rates 0.11 .. 1.29 1/m: a possible (non-negative) field
     rates = np.broadcast_to((a + b * xc)[:, None], (nx, ny))
     m = _map(rates, origin=origin, res=res, outside=0.3)
     field = SmoothDecayRateField(m)

@@ -124,11 +124,9 @@ def check_pose(T, name: str = "T_world_sensor"):
     """
     message = f"{name} must be finite (NaN or infinite pose parameters)"
     T = jax.tree.map(lambda p: _reject(p, lambda xp, a: ~xp.isfinite(a), message), T)
-    n_rot = (
-        {2: 2, 4: 4}.get(T.rotation().parameters().shape[-1]) if hasattr(T, "rotation") else None
-    )
-    if n_rot is None:
+    if not hasattr(T, "rotation"):  # SO2 / SO3 themselves: nothing more to check here
         return T
+    n_rot = T.rotation().parameters().shape[-1]  # 2 (unit complex) or 4 (quaternion)
 
     def unnormalised(xp, params):
         norm = xp.sqrt(xp.sum(params[..., :n_rot] ** 2, axis=-1, keepdims=True))

@@ -39,4 +39,4 @@ lint: $(STAMP)
 
 clean:
 	rm -rf $(VENV) outputs multirun .pytest_cache
-	rm -f lidarjax/raytrace/_lidarjax_native.so lidarjax/raytrace/_lidarjax_native.json
+	rm -f lidarjax/raytrace/_lidarjax_native*.so lidarjax/raytrace/_lidarjax_native.json

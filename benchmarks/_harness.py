@@ -227,6 +227,7 @@ def native_info() -> dict:
         "available": bool(_native.available()),
         "unavailable_reason": _native.unavailable_reason(),
         "default_threads": _native.default_threads(),
+        "isa": _native.isa(),
     }
     try:
         info["build"] = json.loads(_build.INFO.read_text())

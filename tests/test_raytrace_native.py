@@ -163,6 +163,82 @@ def test_float32_kernels_match_jax_float32():
     assert int(cells) == 0 and float(body) <= 1.0
 
 
+_ISA_SCRIPT = """
+import sys
+import jax
+jax.config.update("jax_enable_x64", sys.argv[2] == "f64")
+import jax.numpy as jnp, numpy as np
+from lidarjax.rays import RayBatch
+from lidarjax.raytrace import CellTerm, GridSpec, _native, accumulate, fold_rays
+assert _native.isa() == sys.argv[3], (_native.isa(), sys.argv[3])
+dt = np.float64 if sys.argv[2] == "f64" else np.float32
+rng = np.random.default_rng(11)
+out = {}
+for dim, shape in ((2, (70, 50)), (3, (24, 18, 10))):
+    spec = GridSpec(np.full(dim, -0.5), 0.2, shape)
+    n = 5000
+    o = jnp.asarray(rng.uniform(-1.5, 9.0, (n, dim)), dt)
+    d = jnp.asarray(rng.normal(size=(n, dim)), dt)
+    d = d.at[:500, 1:].set(0.0)  # axis-parallel rays
+    r = jnp.asarray(rng.uniform(0.0, 12.0, n), dt)
+    kind = jnp.asarray(rng.integers(0, 3, n), jnp.int32)
+    unit = d / jnp.linalg.norm(d, axis=1, keepdims=True)
+    rays = RayBatch(o, unit, r, kind, jnp.asarray(0.3, dt), jnp.asarray(10.0, dt))
+    st = accumulate(spec, rays, backend="native", threads=2)
+    out[f"{dim}_h"], out[f"{dim}_m"], out[f"{dim}_r"] = st.hits, st.misses, st.lengths
+    a = jnp.asarray(rng.uniform(0.0, 2.0, shape), dt)
+    b = jnp.asarray(rng.uniform(0.1, 3.0, shape), dt)
+    terms = {
+        "lin": CellTerm.linear(slope=a, offset=b),
+        "slope": CellTerm.linear(slope=a),
+        "off": CellTerm.linear(offset=b),
+        "gam": CellTerm.gamma(a, b),
+    }
+    assert sorted(t.mode for t in terms.values()) == [0, 1, 2, 3]
+    for name, t in terms.items():
+        f = fold_rays(spec, o, d, r, t, backend="native", threads=2)
+        for k in ("body", "last_cell", "last_len", "grid_len", "any_valid"):
+            out[f"{dim}_{name}_{k}"] = getattr(f, k)
+np.savez(sys.argv[1], **{k: np.asarray(v) for k, v in out.items()})
+"""
+
+
+@native
+@pytest.mark.skipif(_native.isa() != "avx2", reason="the AVX2 library is not in use here")
+@pytest.mark.parametrize("dtype", ["f32", "f64"])
+def test_avx2_and_baseline_libraries_agree(tmp_path, dtype):
+    """The AVX2 build (8 float / 4 double ray lanes) and the baseline build (4 / 2 lanes),
+    in subprocesses: per-ray folds bit-identical, hit/miss counts identical, per-cell
+    lengths equal to round-off (rays add to a cell in a lane-width dependent order)."""
+    import os
+    import subprocess
+    import sys
+
+    res = {}
+    for isa in ("baseline", "avx2"):
+        path = tmp_path / f"{isa}.npz"
+        env = dict(os.environ, LIDARJAX_NATIVE_ISA=isa)
+        out = subprocess.run(
+            [sys.executable, "-c", _ISA_SCRIPT, str(path), dtype, isa],
+            capture_output=True,
+            text=True,
+            env=env,
+            timeout=300,
+        )
+        assert out.returncode == 0, out.stderr[-3000:]
+        res[isa] = dict(np.load(path))
+    base, wide = res["baseline"], res["avx2"]
+    assert base.keys() == wide.keys() and len(base) == 2 * (3 + 4 * 5)
+    rtol = 1e-12 if dtype == "f64" else 1e-5
+    for k in base:
+        if k.endswith("_r"):
+            np.testing.assert_allclose(wide[k], base[k], rtol=rtol, atol=rtol, err_msg=k)
+        else:
+            np.testing.assert_array_equal(wide[k], base[k], err_msg=k)
+    assert base["2_h"].sum() > 500 and base["3_m"].sum() > 1000
+    assert np.isfinite(base["2_gam_body"]).all() and np.abs(base["2_lin_body"]).sum() > 100
+
+
 @native
 @pytest.mark.slow
 def test_accumulate_intel_log_identical_counts():

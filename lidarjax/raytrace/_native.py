@@ -33,7 +33,7 @@ Backend = Literal["auto", "native", "jax"]
 BACKENDS = ("auto", "native", "jax")
 TERM_MODES = {0: 2, 1: 1, 2: 1, 3: 3}  # mode -> number of tables
 
-_state: dict = {"loaded": None, "reason": None, "warned": False}
+_state: dict = {"loaded": None, "reason": None, "warned": False, "isa": None}
 
 
 def _dt(dtype) -> str:
@@ -63,6 +63,19 @@ def _load() -> bool:
     else:
         try:
             lib = ctypes.CDLL(str(_build.LIBRARY))
+            isa = os.environ.get("LIDARJAX_NATIVE_ISA", "auto")
+            if isa not in ("auto", "baseline", "avx2"):
+                raise ValueError(
+                    f"LIDARJAX_NATIVE_ISA must be auto, baseline or avx2, got {isa!r}"
+                )
+            has_avx2 = bool(lib.lidarjax_cpu_has_avx2())
+            if isa == "avx2" and not has_avx2:
+                raise OSError("LIDARJAX_NATIVE_ISA=avx2 but this CPU has no AVX2")
+            if isa != "baseline" and has_avx2 and "avx2" in _build.variants():
+                lib = ctypes.CDLL(str(_build.LIBRARY_AVX2))
+                _state["isa"] = "avx2"
+            else:
+                _state["isa"] = "baseline"
             for dt in ("F32", "F64"):
                 for d in (2, 3):
                     jax.ffi.register_ffi_target(
@@ -81,6 +94,12 @@ def _load() -> bool:
             reason = f"the native library could not be loaded: {e}"
     _state["loaded"], _state["reason"] = ok, reason
     return ok
+
+
+def isa() -> str | None:
+    """Which native library is in use: ``"avx2"`` (8 float / 4 double ray lanes per
+    vector) or ``"baseline"`` (4 / 2), or None when the kernels are unavailable."""
+    return _state["isa"] if _load() else None
 
 
 def available() -> bool:

@@ -342,10 +342,14 @@ void parallel_blocks(int64_t n, int64_t threads, int64_t block, Fn fn) {
 }
 
 constexpr int64_t kBlock = 256;
-// Rays walked together per thread: one 16-byte vector (SSE2 / NEON) of lanes. Wider
-// vectors without -march (two 16-byte halves per operation) were slower.
+// Rays walked together per thread: one vector of lanes, 16 bytes by default (SSE2 / NEON;
+// wider vectors emulated by two 16-byte halves were slower), 32 bytes in the AVX2 build
+// (-mavx2 -DLIDARJAX_VECTOR_BYTES=32, chosen by the loader when the CPU has AVX2).
+#ifndef LIDARJAX_VECTOR_BYTES
+#define LIDARJAX_VECTOR_BYTES 16
+#endif
 template <typename T>
-constexpr int kLanesOf = 16 / sizeof(T);
+constexpr int kLanesOf = LIDARJAX_VECTOR_BYTES / sizeof(T);
 
 constexpr int32_t kHit = 0, kSub = 1, kSup = 2;  // lidarjax.rays.HIT, SUB, SUP
 
@@ -405,16 +409,18 @@ ffi::Error Accumulate(ffi::Buffer<DT> spec_lo, ffi::Buffer<DT> spec_res, ffi::Bu
   int32_t* V = m_out->typed_data();  // visits first, misses at the end
   threads = clamp_threads(threads, n, 4 * kBlock);
   const int64_t nc = g.ncells;
-  std::vector<std::vector<T>> r_priv(threads - 1);
-  std::vector<std::vector<int32_t>> h_priv(threads - 1), v_priv(threads - 1);
-  for (int64_t t = 0; t + 1 < threads; ++t) {
-    r_priv[t].assign(nc, T(0));
-    h_priv[t].assign(nc, 0);
-    v_priv[t].assign(nc, 0);
-  }
-  std::fill(R, R + nc, T(0));
+  // Private per-thread accumulators, length and visit count of a cell side by side (one
+  // cache line per visited cell instead of two); hits are rare (one per ray) and separate.
+  using I = typename Lanes<T, kLanes>::I;
+  struct Acc {
+    T r;
+    I v;
+  };
+  std::vector<std::vector<Acc>> acc_priv(threads);
+  std::vector<std::vector<int32_t>> h_priv(threads - 1);
+  for (int64_t t = 0; t < threads; ++t) acc_priv[t].assign(nc, Acc{T(0), I(0)});
+  for (int64_t t = 0; t + 1 < threads; ++t) h_priv[t].assign(nc, 0);
   std::fill(H, H + nc, 0);
-  std::fill(V, V + nc, 0);
   std::vector<char> overrun(threads, 0);
   using LV = typename Lanes<T, kLanes>::V;
   using LM = typename Lanes<T, kLanes>::M;
@@ -423,8 +429,8 @@ ffi::Error Accumulate(ffi::Buffer<DT> spec_lo, ffi::Buffer<DT> spec_res, ffi::Bu
     const int32_t* kind;
     T r_max;
     bool sub_as_hit;
-    T* r;
-    int32_t *h, *v;
+    Acc* acc;
+    int32_t* h;
     char* overrun;
     bool hit_next;
     bool hit[kLanes];
@@ -440,8 +446,9 @@ ffi::Error Accumulate(ffi::Buffer<DT> spec_lo, ffi::Buffer<DT> spec_res, ffi::Bu
     void start(int j, int64_t, const Walk<T, D>&) { hit[j] = hit_next; }
     void body(const LM& here, const LV& seg, const LM& valid, const LM&) {
       for (int j = 0; j < kLanes; ++j) {
-        r[here[j]] += seg[j];  // seg is 0 unless valid
-        v[here[j]] -= valid[j];  // valid is -1 or 0
+        Acc& a = acc[here[j]];
+        a.r += seg[j];    // seg is 0 unless valid
+        a.v -= valid[j];  // valid is -1 or 0
       }
     }
     void finish(int j, const End<T, D>& end) {
@@ -458,9 +465,8 @@ ffi::Error Accumulate(ffi::Buffer<DT> spec_lo, ffi::Buffer<DT> spec_res, ffi::Bu
     kern.kind = kind;
     kern.r_max = r_max;
     kern.sub_as_hit = sub_as_hit;
-    kern.r = t == 0 ? R : r_priv[t - 1].data();
+    kern.acc = acc_priv[t].data();
     kern.h = t == 0 ? H : h_priv[t - 1].data();
-    kern.v = t == 0 ? V : v_priv[t - 1].data();
     kern.overrun = &overrun[t];
     kern.grid = &g;
     walk_lanes<T, D, kLanes>(g, b, e, kern);
@@ -469,22 +475,24 @@ ffi::Error Accumulate(ffi::Buffer<DT> spec_lo, ffi::Buffer<DT> spec_res, ffi::Bu
     if (c)
       return ffi::Error(ffi::ErrorCode::kOutOfRange,
                         "ray walk exceeded the grid's cell bound (non-finite input)");
-  if (threads > 1) {
-    parallel_blocks(nc, threads, std::max<int64_t>(4096, nc / threads + 1),
-                    [&](int64_t, int64_t b, int64_t e) {
-                      for (int64_t t = 0; t + 1 < threads; ++t) {
-                        const T* rp = r_priv[t].data();
-                        const int32_t* hp = h_priv[t].data();
-                        const int32_t* vp = v_priv[t].data();
-                        for (int64_t c = b; c < e; ++c) {
-                          R[c] += rp[c];
-                          H[c] += hp[c];
-                          V[c] += vp[c];
-                        }
+  parallel_blocks(nc, threads, std::max<int64_t>(4096, nc / threads + 1),
+                  [&](int64_t, int64_t b, int64_t e) {
+                    const Acc* a0 = acc_priv[0].data();
+                    for (int64_t c = b; c < e; ++c) {
+                      R[c] = a0[c].r;
+                      V[c] = int32_t(a0[c].v);
+                    }
+                    for (int64_t t = 1; t < threads; ++t) {
+                      const Acc* ap = acc_priv[t].data();
+                      const int32_t* hp = h_priv[t - 1].data();
+                      for (int64_t c = b; c < e; ++c) {
+                        R[c] += ap[c].r;
+                        V[c] += int32_t(ap[c].v);
+                        H[c] += hp[c];
                       }
-                    });
-  }
-  for (int64_t c = 0; c < nc; ++c) V[c] -= H[c];
+                    }
+                    for (int64_t c = b; c < e; ++c) V[c] -= H[c];
+                  });
   return ffi::Error::Success();
 }
 
@@ -500,6 +508,33 @@ inline T cell_term(const T* tab, int64_t nc, int64_t c, T seg) {
     // a * (log b - log(b + len)) for len > 0, tables a, b, log b
     if (!(seg > T(0))) return T(0);
     return tab[c] * (tab[2 * nc + c] - std::log(tab[nc + c] + seg));
+  }
+}
+
+// cell_term of all lanes at once (the same operations per lane): the table entries of
+// the lanes' cells are gathered into vectors, then combined lane-wise. Lanes outside
+// `use` get 0 (the Gamma term's log is evaluated only where it is used).
+template <typename T, int W, int MODE>
+inline typename Lanes<T, W>::V cell_terms(const T* tab, int64_t nc,
+                                          const typename Lanes<T, W>::M& here,
+                                          const typename Lanes<T, W>::V& seg,
+                                          const typename Lanes<T, W>::M& use) {
+  using V = typename Lanes<T, W>::V;
+  V out{};
+  if constexpr (MODE == 3) {
+    for (int j = 0; j < W; ++j)
+      if (use[j]) out[j] = cell_term<T, 3>(tab, nc, here[j], seg[j]);
+    return out;
+  } else {
+    V a, b;
+    for (int j = 0; j < W; ++j) {
+      a[j] = tab[here[j]];
+      if constexpr (MODE == 0) b[j] = tab[nc + here[j]];
+    }
+    if constexpr (MODE == 0) out = a + b * seg;
+    if constexpr (MODE == 1) out = a * seg;
+    if constexpr (MODE == 2) out = a;
+    return use ? out : V{};
   }
 }
 
@@ -556,8 +591,8 @@ ffi::Error Fold(ffi::Buffer<DT> spec_lo, ffi::Buffer<DT> spec_res, ffi::Buffer<D
     int32_t* last_cell;
     bool* any_valid;
     char* overrun;
-    T acc[kLanes], glen[kLanes];
-    bool anyv[kLanes];
+    LV acc, glen;  // per lane: body sum and length inside the grid of its current ray
+    LM anyv;       // per lane: any valid step
     int32_t lc[kLanes][D];
     int64_t ray[kLanes];
     bool prep(int64_t i, Walk<T, D>& w) {
@@ -567,17 +602,17 @@ ffi::Error Fold(ffi::Buffer<DT> spec_lo, ffi::Buffer<DT> spec_res, ffi::Buffer<D
     void start(int j, int64_t i, const Walk<T, D>& w) {
       ray[j] = i;
       acc[j] = glen[j] = T(0);
-      anyv[j] = false;
+      anyv[j] = 0;
       for (int k = 0; k < D; ++k) lc[j][k] = w.cell[k];
       t_start[i] = w.t_start;
       t_end[i] = w.t_end;
     }
     void body(const LM& here, const LV& seg, const LM& valid, const LM& last) {
-      for (int j = 0; j < kLanes; ++j) {
-        if (valid[j] & ~last[j]) acc[j] = acc[j] + cell_term<T, MODE>(tab, nc, here[j], seg[j]);
-        anyv[j] = anyv[j] | (valid[j] != 0);
-        glen[j] = glen[j] + seg[j];
-      }
+      const LM use = valid & ~last;
+      const LV term = cell_terms<T, kLanes, MODE>(tab, nc, here, seg, use);
+      acc = use ? acc + term : acc;
+      anyv |= valid;
+      glen = glen + seg;  // seg is 0 unless valid
     }
     void finish(int j, const End<T, D>& end) {
       if (end.over) *overrun = 1;
@@ -586,11 +621,13 @@ ffi::Error Fold(ffi::Buffer<DT> spec_lo, ffi::Buffer<DT> spec_res, ffi::Buffer<D
       for (int k = 0; k < D; ++k) last_cell[i * D + k] = end.last ? end.cell[k] : lc[j][k];
       last_len[i] = end.last ? end.seg : T(0);
       grid_len[i] = glen[j];
-      any_valid[i] = anyv[j];
+      any_valid[i] = anyv[j] != 0;
     }
   };
   parallel_blocks(n, threads, kBlock, [&](int64_t t, int64_t b, int64_t e) {
     Kernel kern;
+    kern.acc = kern.glen = LV{};
+    kern.anyv = LM{};
     kern.grid = &g;
     kern.tab = tab;
     kern.o = o;
@@ -667,3 +704,16 @@ LIDARJAX_FOLD_MODES(LidarjaxFoldF64D2, ffi::F64, 2)
 LIDARJAX_FOLD_MODES(LidarjaxFoldF64D3, ffi::F64, 3)
 
 extern "C" int lidarjax_native_abi_version() { return 1; }
+
+// Bytes per vector of ray lanes this library was built with (16 or 32).
+extern "C" int lidarjax_native_vector_bytes() { return LIDARJAX_VECTOR_BYTES; }
+
+// Whether this CPU can run the AVX2 build (asked of the baseline library).
+extern "C" int lidarjax_cpu_has_avx2() {
+#if defined(__x86_64__) || defined(__i386__)
+  __builtin_cpu_init();
+  return __builtin_cpu_supports("avx2") ? 1 : 0;
+#else
+  return 0;
+#endif
+}

@@ -34,6 +34,10 @@
 #include <type_traits>
 #include <vector>
 
+#if defined(__SSE2__)
+#include <immintrin.h>
+#endif
+
 #include "xla/ffi/api/ffi.h"
 
 namespace ffi = xla::ffi;
@@ -63,6 +67,7 @@ struct Walk {
   bool up[D];
   T t_start, t_end, tol, t;
   bool active;
+  bool flag;  // the kernel's own per-ray bit (set by its prep)
 };
 
 template <typename T, int D>
@@ -177,6 +182,26 @@ struct Lanes {
   typedef I M __attribute__((vector_size(W * sizeof(T))));
 };
 
+// Bit j set where lane j of mask m is set (movemask where the ISA has one).
+template <typename T, int W>
+inline unsigned lane_bits(const typename Lanes<T, W>::M& m) {
+#if defined(__AVX2__)
+  if constexpr (W * sizeof(T) == 32) {
+    if constexpr (sizeof(T) == 4) return unsigned(_mm256_movemask_ps(__m256(m)));
+    else return unsigned(_mm256_movemask_pd(__m256d(m)));
+  }
+#endif
+#if defined(__SSE2__)
+  if constexpr (W * sizeof(T) == 16) {
+    if constexpr (sizeof(T) == 4) return unsigned(_mm_movemask_ps(__m128(m)));
+    else return unsigned(_mm_movemask_pd(__m128d(m)));
+  }
+#endif
+  unsigned bits = 0;
+  for (int j = 0; j < W; ++j) bits |= unsigned(m[j] != 0) << j;
+  return bits;
+}
+
 template <typename T, int D, int W, typename K>
 inline void walk_lanes(const Grid<T, D>& g, int64_t b, int64_t e, K& kern) {
   using I = typename Lanes<T, W>::I;
@@ -196,12 +221,28 @@ inline void walk_lanes(const Grid<T, D>& g, int64_t b, int64_t e, K& kern) {
   t = t_end = tol = V{};
   t_last = V{} - inf;
   int64_t next = b;
-  Walk<T, D> w;
+  // Rays are set up kStage at a time ahead of the lanes that take them: independent
+  // set-ups in a tight loop overlap their division chains.
+  constexpr int kStage = 16;
+  Walk<T, D> stage[kStage];
+  int64_t stage_ray[kStage];
+  int n_stage = 0, pos = 0;
+  auto refill = [&]() {
+    n_stage = pos = 0;
+    while (next < e && n_stage < kStage) {
+      const int64_t i = next++;
+      if (kern.prep(i, stage[n_stage])) stage_ray[n_stage++] = i;
+    }
+  };
   // Load the next ray that walks into lane j; false when none is left (lane j is dead).
   auto load = [&](int j) -> bool {
-    while (next < e) {
-      const int64_t i = next++;
-      if (!kern.prep(i, w)) continue;
+    while (true) {
+      if (pos == n_stage) {
+        refill();
+        if (n_stage == 0) break;
+      }
+      const Walk<T, D>& w = stage[pos];
+      const int64_t i = stage_ray[pos++];
       kern.start(j, i, w);
       if (!w.active) {
         End<T, D> end{w.flat, false, false, T(0), {}};
@@ -270,8 +311,7 @@ inline void walk_lanes(const Grid<T, D>& g, int64_t b, int64_t e, K& kern) {
     it += 1;
     const M done = live & (~active | (it >= bound));
     kern.body(here, seg, valid, valid & ~active);
-    unsigned bits = 0;
-    for (int j = 0; j < W; ++j) bits |= unsigned(done[j] != 0) << j;
+    const unsigned bits = lane_bits<T, W>(done);
     if (bits) {
       for (int j = 0; j < W; ++j) {
         if (!((bits >> j) & 1u)) continue;
@@ -432,7 +472,6 @@ ffi::Error Accumulate(ffi::Buffer<DT> spec_lo, ffi::Buffer<DT> spec_res, ffi::Bu
     Acc* acc;
     int32_t* h;
     char* overrun;
-    bool hit_next;
     bool hit[kLanes];
     bool prep(int64_t i, Walk<T, D>& w) {
       const int32_t k = kind[i];
@@ -440,10 +479,10 @@ ffi::Error Accumulate(ffi::Buffer<DT> spec_lo, ffi::Buffer<DT> spec_res, ffi::Bu
       if (!is_hit && k != kSup) return false;
       const T len = is_hit ? rng[i] : r_max;
       setup<T, D>(*grid, o + i * D, dir + i * D, len, w);
-      hit_next = is_hit && w.active && (w.t_end >= len - w.tol);
+      w.flag = is_hit && w.active && (w.t_end >= len - w.tol);
       return true;
     }
-    void start(int j, int64_t, const Walk<T, D>&) { hit[j] = hit_next; }
+    void start(int j, int64_t, const Walk<T, D>& w) { hit[j] = w.flag; }
     void body(const LM& here, const LV& seg, const LM& valid, const LM&) {
       for (int j = 0; j < kLanes; ++j) {
         Acc& a = acc[here[j]];

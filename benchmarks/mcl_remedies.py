@@ -55,6 +55,7 @@ DEFAULT_VARIANTS = [
     "fmp_dec+c2f+1000",
     "dec+3000",
     "dec+c2f0.35+3000",
+    "fmp_dec+c2f0.35+2000",
     "dec+augmented",
     "dec+kld",
     "dec+guided_gradient",

@@ -458,8 +458,7 @@ ffi::Error Accumulate(ffi::Buffer<DT> spec_lo, ffi::Buffer<DT> spec_res, ffi::Bu
   };
   std::vector<std::vector<Acc>> acc_priv(threads);
   std::vector<std::vector<int32_t>> h_priv(threads - 1);
-  for (int64_t t = 0; t < threads; ++t) acc_priv[t].assign(nc, Acc{T(0), I(0)});
-  for (int64_t t = 0; t + 1 < threads; ++t) h_priv[t].assign(nc, 0);
+  // each worker allocates (and first touches) its own accumulators, in parallel
   std::fill(H, H + nc, 0);
   std::vector<char> overrun(threads, 0);
   using LV = typename Lanes<T, kLanes>::V;
@@ -504,6 +503,10 @@ ffi::Error Accumulate(ffi::Buffer<DT> spec_lo, ffi::Buffer<DT> spec_res, ffi::Bu
     kern.kind = kind;
     kern.r_max = r_max;
     kern.sub_as_hit = sub_as_hit;
+    if (acc_priv[t].empty()) {
+      acc_priv[t].assign(nc, Acc{T(0), I(0)});
+      if (t > 0) h_priv[t - 1].assign(nc, 0);
+    }
     kern.acc = acc_priv[t].data();
     kern.h = t == 0 ? H : h_priv[t - 1].data();
     kern.overrun = &overrun[t];
@@ -516,19 +519,20 @@ ffi::Error Accumulate(ffi::Buffer<DT> spec_lo, ffi::Buffer<DT> spec_res, ffi::Bu
                         "ray walk exceeded the grid's cell bound (non-finite input)");
   parallel_blocks(nc, threads, std::max<int64_t>(4096, nc / threads + 1),
                   [&](int64_t, int64_t b, int64_t e) {
-                    const Acc* a0 = acc_priv[0].data();
-                    for (int64_t c = b; c < e; ++c) {
-                      R[c] = a0[c].r;
-                      V[c] = int32_t(a0[c].v);
-                    }
-                    for (int64_t t = 1; t < threads; ++t) {
+                    std::fill(R + b, R + e, T(0));
+                    std::fill(V + b, V + e, 0);
+                    for (int64_t t = 0; t < threads; ++t) {
+                      if (acc_priv[t].empty()) continue;  // a worker that got no rays
                       const Acc* ap = acc_priv[t].data();
-                      const int32_t* hp = h_priv[t - 1].data();
                       for (int64_t c = b; c < e; ++c) {
                         R[c] += ap[c].r;
                         V[c] += int32_t(ap[c].v);
-                        H[c] += hp[c];
                       }
+                    }
+                    for (int64_t t = 1; t < threads; ++t) {
+                      if (h_priv[t - 1].empty()) continue;
+                      const int32_t* hp = h_priv[t - 1].data();
+                      for (int64_t c = b; c < e; ++c) H[c] += hp[c];
                     }
                     for (int64_t c = b; c < e; ++c) V[c] -= H[c];
                   });

@@ -43,6 +43,7 @@ import jax.numpy as jnp  # noqa: E402
 import jaxlie  # noqa: E402
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+from _schemas import validate  # noqa: E402
 from hydra.core.hydra_config import HydraConfig  # noqa: E402
 from omegaconf import DictConfig, OmegaConf  # noqa: E402
 from scipy import stats  # noqa: E402
@@ -468,6 +469,7 @@ def plot_figures(figs, cfg, out: Path):
 
 @hydra.main(config_path="../configs", config_name="dct_maps", version_base=None)
 def main(cfg: DictConfig) -> dict:
+    validate(cfg, "dct_maps")
     jax.config.update("jax_enable_x64", bool(cfg.x64))
     out = Path(HydraConfig.get().runtime.output_dir)
     t0 = time.perf_counter()

@@ -47,6 +47,7 @@ matplotlib.use("Agg")
 import jax.numpy as jnp  # noqa: E402
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+from _schemas import validate  # noqa: E402
 from custom_field import RBFField, held_out, patch_rays, rbf_field_like  # noqa: E402
 from hydra.core.hydra_config import HydraConfig  # noqa: E402
 from omegaconf import DictConfig, OmegaConf  # noqa: E402
@@ -252,6 +253,7 @@ def plot_figures(figs: dict, summ: dict, cfg: DictConfig, out: Path) -> None:
 
 @hydra.main(config_path="../configs", config_name="decay_rate_fields", version_base=None)
 def main(cfg: DictConfig) -> dict:
+    validate(cfg, "decay_rate_fields")
     jax.config.update("jax_enable_x64", bool(cfg.x64))
     out = Path(HydraConfig.get().runtime.output_dir)
     t0 = time.perf_counter()

@@ -15,6 +15,7 @@ import hydra
 import jax
 import jaxlie
 import numpy as np
+from _schemas import validate
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
@@ -35,6 +36,7 @@ def point_segment_distance(points: np.ndarray, segments: np.ndarray) -> np.ndarr
 
 @hydra.main(config_path="../configs", config_name="demo", version_base=None)
 def main(cfg: DictConfig) -> dict:
+    validate(cfg, "demo")
     out = Path(HydraConfig.get().runtime.output_dir)
     world = make_office(cfg.seed, width_m=cfg.world.width_m, height_m=cfg.world.height_m)
     poses = world.trajectory(cfg.scans.n_poses, jitter_m=0.3, seed=cfg.seed)

@@ -14,7 +14,11 @@ Tables written to ``results.md`` / ``results.json``:
    plus the ``campus*`` variant (10 % of the beams of every scan failed: set below r_min);
 2. MLM vs FMP filters for the decay-rate (and reflection) model (Figure 8.3);
 3. the decay-rate filter's estimate vs that estimate refined by gradient ascent on the
-   scan likelihood (``localization.refine``), every ``refine.every`` steps.
+   scan likelihood (``localization.refine``), every ``refine.every`` steps (at the last
+   step only when a log has fewer steps; ``refine.every=0`` turns refinement off).
+
+The config is checked before any log is loaded (``experiments/_schemas.py``): types by
+Hydra while composing, ranges and names (logs, models) by ``validate``.
 
 Plots: error over time per log (``errors.png``) and trajectories (``trajectories.png``).
 E.g. ``python experiments/mcl.py logs=[intel] filter.runs=2 filter.max_steps=20``.
@@ -37,6 +41,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+from _schemas import validate  # noqa: E402
 from hydra.core.hydra_config import HydraConfig  # noqa: E402
 from omegaconf import DictConfig, OmegaConf  # noqa: E402
 from tqdm import tqdm  # noqa: E402
@@ -178,11 +183,27 @@ def _refine_all(fields, az, ranges, poses, r_min, r_max, max_steps):
     return jax.vmap(one)(poses)
 
 
+def refine_steps(every: int, n_steps: int) -> np.ndarray:
+    """Steps (0-based) at which ``refine_eval`` refines: ``every - 1, 2 every - 1, ...``
+    below ``n_steps``, or the last step alone when ``n_steps < every`` (e.g. the example
+    ``filter.max_steps=20`` with the default ``refine.every=25``). ``[S]`` ints, ``S >= 1``.
+
+    Raises:
+        ValueError: ``every < 1`` or ``n_steps < 1``.
+    """
+    if every < 1 or n_steps < 1:
+        raise ValueError(f"need refine.every >= 1 and n_steps >= 1, got {every}, {n_steps}")
+    every = min(every, n_steps)
+    return np.arange(every - 1, n_steps, every)
+
+
 def refine_eval(m, log, seq, est, cfg, r_min, r_max):
-    """Refine the decay-rate filter's estimates every ``refine.every`` steps."""
+    """Refine the decay-rate filter's estimates ``est`` ``[runs T 3]`` at every
+    ``refine.every``-th step (steps ``every - 1, 2 every - 1, ... < T``); when the run has
+    fewer steps than ``refine.every`` (``T < every``), at its last step only."""
     beams = np.arange(0, log.n_beams, int(cfg.refine.beam_stride))
     az = jnp.asarray(log.azimuths_rad[beams])
-    steps = np.arange(int(cfg.refine.every) - 1, est.shape[1], int(cfg.refine.every))
+    steps = refine_steps(int(cfg.refine.every), est.shape[1])
     t0 = time.perf_counter()
     before, after, n_steps = [], [], []
     fields = smooth_fields(m, [float(b) for b in cfg.refine.blur_schedule_m])
@@ -380,6 +401,7 @@ def plot(curves: dict, gts: dict, out: Path) -> None:
 
 @hydra.main(config_path="../configs", config_name="mcl", version_base=None)
 def main(cfg: DictConfig) -> None:
+    validate(cfg, "mcl")
     out = Path(HydraConfig.get().runtime.output_dir)
     out.mkdir(parents=True, exist_ok=True)
     models = list(cfg.models)

@@ -39,6 +39,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+from _schemas import INITS, VARIANT_KEYS, validate  # noqa: E402
 from hydra.core.hydra_config import HydraConfig  # noqa: E402
 from mcl import (  # noqa: E402
     NAMES,
@@ -54,23 +55,6 @@ from tqdm import tqdm  # noqa: E402
 
 from lidarjax import localization as loc  # noqa: E402
 from lidarjax import maps  # noqa: E402
-
-VARIANT_KEYS = {
-    "model",
-    "smoothing_m",
-    "z_rand",
-    "beam_exponent",
-    "particles",
-    "alpha_slow",
-    "alpha_fast",
-    "kld",
-    "guided",
-    "init",
-    "coarse_to_fine",
-    "runs",
-    "lattice",
-}
-INITS = {None, "gaussian", "global", "global_scan"}
 
 
 def _variant(v) -> dict:
@@ -520,6 +504,7 @@ def write_outputs(out: Path, cfg, results, surfaces, runtime_s) -> None:
 
 @hydra.main(config_path="../configs", config_name="mcl_remedies", version_base=None)
 def main(cfg: DictConfig) -> None:
+    validate(cfg, "mcl_remedies")
     out = Path(HydraConfig.get().runtime.output_dir)
     out.mkdir(parents=True, exist_ok=True)
     variants = {k: _variant(v) for k, v in cfg.variants.items()}

@@ -42,6 +42,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+from _schemas import validate  # noqa: E402
 from hydra.core.hydra_config import HydraConfig  # noqa: E402
 from omegaconf import DictConfig, OmegaConf  # noqa: E402
 from tqdm import tqdm  # noqa: E402
@@ -318,6 +319,7 @@ def _table(res: dict) -> str:
 
 @hydra.main(config_path="../configs", config_name="planes", version_base=None)
 def main(cfg: DictConfig) -> None:
+    validate(cfg, "planes")
     out = Path(HydraConfig.get().runtime.output_dir)
     out.mkdir(parents=True, exist_ok=True)
     t_start = time.time()

@@ -42,6 +42,7 @@ import jax.numpy as jnp  # noqa: E402
 import jaxlie  # noqa: E402
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+from _schemas import validate  # noqa: E402
 from hydra.core.hydra_config import HydraConfig  # noqa: E402
 from matplotlib.patches import Rectangle  # noqa: E402
 from omegaconf import DictConfig, OmegaConf  # noqa: E402
@@ -374,6 +375,7 @@ def changes_of(session: int, cfg) -> str:
 
 @hydra.main(config_path="../configs", config_name="poles", version_base=None)
 def main(cfg: DictConfig) -> None:
+    validate(cfg, "poles")
     out = Path(HydraConfig.get().runtime.output_dir)
     t_start = time.perf_counter()
     traj = load_urban_trajectory()

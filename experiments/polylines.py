@@ -44,6 +44,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+from _schemas import validate  # noqa: E402
 from hydra.core.hydra_config import HydraConfig  # noqa: E402
 from omegaconf import DictConfig, OmegaConf  # noqa: E402
 from scipy.optimize import minimize  # noqa: E402
@@ -495,6 +496,7 @@ def plot_example(ds: Dataset, i: int, J: int, cfg, out: Path) -> dict:
 
 @hydra.main(config_path="../configs", config_name="polylines", version_base=None)
 def main(cfg: DictConfig) -> None:
+    validate(cfg, "polylines")
     jax.config.update("jax_enable_x64", bool(cfg.x64))
     out = Path(HydraConfig.get().runtime.output_dir)
     out.mkdir(parents=True, exist_ok=True)

@@ -42,6 +42,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+from _schemas import validate  # noqa: E402
 from hydra.core.hydra_config import HydraConfig  # noqa: E402
 from omegaconf import DictConfig, OmegaConf  # noqa: E402
 from tqdm import tqdm  # noqa: E402
@@ -414,6 +415,7 @@ def plot(rows: list[dict]):
 
 @hydra.main(config_path="../configs", config_name="pose_likelihood", version_base=None)
 def main(cfg: DictConfig) -> dict:
+    validate(cfg, "pose_likelihood")
     out = Path(HydraConfig.get().runtime.output_dir)
     t0 = time.perf_counter()
     rows = []

@@ -74,6 +74,7 @@ import hydra
 import jax
 import jax.numpy as jnp
 import numpy as np
+from _schemas import validate
 from hydra.core.hydra_config import HydraConfig
 from jax import lax
 from jax.scipy.special import betainc
@@ -302,22 +303,9 @@ def _fmt_p(p) -> str:
 
 
 def _validate(cfg: DictConfig) -> None:
-    if cfg.boundary not in ("bounded", "cyclic"):
-        raise ValueError(f"boundary must be 'bounded' or 'cyclic', got {cfg.boundary!r}")
-    if cfg.conjugate_fallback != "uniform":
-        raise ValueError(f"conjugate_fallback must be 'uniform', got {cfg.conjugate_fallback!r}")
-    if cfg.error_bar not in ("variance", "std", "sem"):
-        raise ValueError(f"error_bar must be variance, std or sem, got {cfg.error_bar!r}")
-    if cfg.p_value_backend not in ("auto", "scipy", "jax"):
-        raise ValueError(f"p_value_backend must be auto, scipy or jax, got {cfg.p_value_backend!r}")
-    if int(cfg.n_voxels) < 2 or int(cfg.runs) < 2 or int(cfg.steps) < 1:
-        raise ValueError("n_voxels >= 2, runs >= 2 and steps >= 1 are required")
-    if cfg.boundary == "bounded" and int(cfg.steps) > int(cfg.n_voxels):
-        raise ValueError(f"steps ({cfg.steps}) must be <= n_voxels for a bounded corridor")
-    if not cfg.n_values or any(int(n) < 1 for n in cfg.n_values):
-        raise ValueError(f"n_values must be positive integers, got {list(cfg.n_values)}")
-    if float(cfg.voxel_length_m) <= 0 or int(cfg.chunk_size) < 1:
-        raise ValueError("voxel_length_m > 0 and chunk_size >= 1 are required")
+    """Types, ranges and choices of the config (``experiments/_schemas.py``); raises a
+    ``ValueError`` naming every bad key and value."""
+    validate(cfg, "posterior_corridor")
 
 
 def _plot(results: dict, error_bar: str, path: Path) -> None:

@@ -48,18 +48,48 @@ ResamplerName = Literal["systematic", "stratified", "multinomial"]
 # --------------------------------------------------------------------------------------
 
 
-def normalize_log_weights(log_weights: Float[Array, " n"]) -> Float[Array, " n"]:
-    """Log-weights shifted so that ``sum exp = 1``. If every weight is zero (all ``-inf``,
-    e.g. every particle got likelihood 0) or any is NaN, the result is uniform, so the
-    filter never produces NaN weights; :class:`StepInfo` reports such steps."""
-    n = log_weights.shape[-1]
-    lse = jax.nn.logsumexp(log_weights, axis=-1, keepdims=True)
-    ok = jnp.isfinite(lse) & ~jnp.any(jnp.isnan(log_weights), axis=-1, keepdims=True)
-    return jnp.where(ok, log_weights - jnp.where(ok, lse, 0.0), -math.log(n))
+def _check_particle_count(log_weights, name: str) -> int:
+    """The number of particles ``n`` (last axis); ``ValueError`` naming ``name`` if 0."""
+    shape = jnp.shape(log_weights)
+    if len(shape) == 0 or shape[-1] == 0:
+        raise ValueError(
+            f"{name} has no particles (log-weights of shape {tuple(shape)}); a particle "
+            "filter needs at least one"
+        )
+    return int(shape[-1])
 
 
-def effective_sample_size(log_weights: Float[Array, " n"]) -> Float[Array, ""]:
-    """``n_eff = 1 / sum_i w_i^2`` of the normalised weights (between 1 and n)."""
+def normalize_log_weights(log_weights: Float[Array, "*b n"]) -> Float[Array, "*b n"]:
+    """Log-weights shifted so that ``sum exp = 1`` (over the last axis).
+
+    Special cases, each reported by :class:`StepInfo` when it happens in a filter step:
+
+    - some weight is ``+inf`` (a particle with infinite likelihood, no NaN): the ``k``
+      particles at ``+inf`` share the weight equally (log-weight ``-log k``), all others
+      get weight 0 (the limit of the normalised weights as those likelihoods grow);
+    - every weight is zero (all ``-inf``, e.g. every particle got likelihood 0) or any is
+      NaN: uniform weights ``-log n``, so the filter never produces NaN weights.
+
+    Raises:
+        ValueError: ``log_weights`` has no particles (last axis of length 0).
+    """
+    n = _check_particle_count(log_weights, "log_weights")
+    nan = jnp.any(jnp.isnan(log_weights), axis=-1, keepdims=True)
+    at_inf = log_weights == jnp.inf
+    n_inf = jnp.sum(at_inf, axis=-1, keepdims=True)
+    has_inf = n_inf > 0
+    lse = jax.nn.logsumexp(jnp.where(has_inf, 0.0, log_weights), axis=-1, keepdims=True)
+    ok = jnp.isfinite(lse) & ~nan
+    finite = log_weights - jnp.where(ok, lse, 0.0)
+    shared = jnp.where(at_inf, -jnp.log(jnp.maximum(n_inf, 1).astype(log_weights.dtype)), -jnp.inf)
+    out = jnp.where(has_inf, shared, jnp.where(ok, finite, -math.log(n)))
+    return jnp.where(nan, -math.log(n), out).astype(log_weights.dtype)
+
+
+def effective_sample_size(log_weights: Float[Array, "*b n"]) -> Float[Array, "*b"]:
+    """``n_eff = 1 / sum_i w_i^2`` of the weights as :func:`normalize_log_weights` makes
+    them (between 1 and n; ``k`` when ``k`` particles share the weight after ``+inf``
+    likelihoods, ``n`` after a reset to uniform)."""
     w = jnp.exp(normalize_log_weights(log_weights))
     return 1.0 / jnp.sum(w * w, axis=-1)
 
@@ -327,7 +357,8 @@ class ParticleState(eqx.Module):
         n_updates: Int[ArrayLike, ""] | None = None,
     ):
         log_weights = jnp.asarray(log_weights)
-        batch, n = log_weights.shape[:-1], log_weights.shape[-1]
+        n = _check_particle_count(log_weights, "log_weights")
+        batch = log_weights.shape[:-1]
         dtype = log_weights.dtype
 
         def scalar(x, default, dt):
@@ -507,6 +538,7 @@ def estimate(state: ParticleState, best_fraction: float = 0.1) -> Pose:
     active particles ``state.n_active`` (inactive ones have weight 0)."""
     if not 0 < best_fraction <= 1:
         raise ValueError(f"best_fraction must lie in (0, 1], got {best_fraction!r}")
+    _check_particle_count(state.log_weights, "state")
     n = state.n
     k = max(1, math.ceil(best_fraction * n))
     top_lw, idx = jax.lax.top_k(state.log_weights, k)
@@ -600,6 +632,14 @@ class StepInfo(eqx.Module):
             (augmented MCL; 0 otherwise).
         n_active: int32, number of live particles after the step (KLD-sampling; ``n``
             otherwise).
+        bad_control: the control had a NaN or infinite entry (only possible under
+            ``jit`` / ``lax.scan``; concrete controls raise ``ValueError``). The step then
+            left the particles and weights as they were (no motion, no measurement
+            update, no resampling); ``estimate`` and ``n_eff`` describe those kept
+            particles.
+        infinite_likelihood: some live particle had log-likelihood ``+inf`` (and none
+            NaN): the ``k`` particles at ``+inf`` share the weight equally, the others
+            get weight 0, so ``n_eff = k`` (see :func:`normalize_log_weights`).
     """
 
     estimate: Pose
@@ -608,6 +648,39 @@ class StepInfo(eqx.Module):
     degenerate: Bool[Array, ""]
     injected: Int[Array, ""]
     n_active: Int[Array, ""]
+    bad_control: Bool[Array, ""] = eqx.field(default_factory=lambda: jnp.zeros((), bool))
+    infinite_likelihood: Bool[Array, ""] = eqx.field(default_factory=lambda: jnp.zeros((), bool))
+
+
+def _control_leaves(control) -> list:
+    """The floating-point leaves of a control pytree (integer leaves are always finite)."""
+    return [x for x in jax.tree.leaves(control) if jnp.issubdtype(jnp.result_type(x), jnp.inexact)]
+
+
+def _check_controls_concrete(control, name: str, per_step: bool) -> None:
+    """``ValueError`` naming ``name`` if every leaf of ``control`` is concrete and one has a
+    NaN or infinite entry (no-op for traced controls: no host sync inside ``scan``)."""
+    leaves = _control_leaves(control)
+    if not leaves or not all(is_concrete(x) for x in leaves):
+        return
+    for x in leaves:
+        a = np.asarray(x)
+        bad = ~np.isfinite(a)
+        if np.any(bad):
+            first = tuple(int(i) for i in np.argwhere(bad)[0])
+            where = f" (step {first[0]})" if per_step and first else ""
+            raise ValueError(
+                f"{name} must be finite (NaN or infinite odometry?); found {a[first]!r} at "
+                f"index {first}{where}"
+            )
+
+
+def _bad_control(control) -> Bool[Array, ""]:
+    """Traced test: does any floating-point leaf of ``control`` hold a NaN or inf?"""
+    bad = jnp.zeros((), bool)
+    for x in _control_leaves(control):
+        bad = bad | jnp.any(~jnp.isfinite(x))
+    return bad
 
 
 def _log_interp(log_old, log_new, rate):
@@ -818,14 +891,36 @@ class ParticleFilter(eqx.Module):
         ``w_prev * p(z | x) p(x | x_prev, u) / q(x | ...)``, so the filter remains a valid
         importance sampler of the same posterior for any proposal ``q`` whose support
         covers the prior's. Steps without an update use the plain ``motion(...)``.
+
+        Bad input: a concrete ``control`` with a NaN or infinite entry raises
+        ``ValueError``; a traced one (under ``jit`` / in :meth:`run`'s ``scan``) makes the
+        step keep the previous particles and weights (no motion, measurement update or
+        resampling) and sets ``StepInfo.bad_control``. Measurement log-likelihoods that are
+        NaN or all ``-inf`` reset the weights to uniform (``StepInfo.degenerate``);
+        ``+inf`` ones share the weight among those particles
+        (``StepInfo.infinite_likelihood``). A state with no particles raises
+        ``ValueError``.
         """
+        n = _check_particle_count(state.log_weights, "state")
+        _check_controls_concrete(control, "control", per_step=False)
         key, k_motion, k_resample = jax.random.split(state.key, 3)
         if self.kld or self.augmented:
             k_resample, k_cand, k_inject = jax.random.split(k_resample, 3)
-        n = state.log_weights.shape[0]
         dtype = state.log_weights.dtype
-        update = jnp.asarray(update)
-        particles, ll = self._predict(state, control, z, update, k_motion)
+        # A NaN/inf control (traced): no motion, no measurement update, no resampling;
+        # the motion model sees zeros so that nothing downstream is computed from NaN.
+        bad_control = _bad_control(control)
+        safe_control = jax.tree.map(
+            lambda x: (
+                jnp.where(bad_control, jnp.zeros_like(x), x)
+                if jnp.issubdtype(jnp.result_type(x), jnp.inexact)
+                else x
+            ),
+            control,
+        )
+        update = jnp.asarray(update) & ~bad_control
+        particles, ll = self._predict(state, safe_control, z, update, k_motion)
+        particles = _where_tree(jnp.broadcast_to(bad_control, (n,)), state.particles, particles)
 
         n_active = jnp.asarray(state.n_active, jnp.int32)
         slots = jnp.arange(n)
@@ -833,13 +928,14 @@ class ParticleFilter(eqx.Module):
         if self.kld:
             active = slots < n_active
             raw = jnp.where(active, raw, -jnp.inf)
-        degenerate = ~jnp.any(raw > -jnp.inf) | jnp.any(jnp.isnan(raw))
+        nan = jnp.any(jnp.isnan(raw))
+        degenerate = ~jnp.any(raw > -jnp.inf) | nan
+        infinite = jnp.any(raw == jnp.inf) & ~nan
         log_weights = normalize_log_weights(raw)
         if self.kld:  # the uniform fallback of normalize_log_weights: live slots only
-            lse = jax.nn.logsumexp(raw)
-            ok = jnp.isfinite(lse) & ~jnp.any(jnp.isnan(raw))
             uniform = jnp.where(active, -jnp.log(n_active.astype(dtype)), -jnp.inf)
-            log_weights = jnp.where(ok, log_weights, uniform)
+            log_weights = jnp.where(degenerate, uniform, log_weights)
+        log_weights = jnp.where(bad_control, state.log_weights, log_weights)
 
         # augmented MCL: bias-corrected exponential averages of w_avg in log space
         log_w_slow, log_w_fast = state.log_w_slow, state.log_w_fast
@@ -911,7 +1007,16 @@ class ParticleFilter(eqx.Module):
         else:
             reset = -math.log(n)
         log_weights = jnp.where(resample, reset, log_weights)
-        info = StepInfo(est, n_eff, resample, degenerate & update, injected, n_next)
+        info = StepInfo(
+            est,
+            n_eff,
+            resample,
+            degenerate & update,
+            injected,
+            n_next,
+            bad_control=bad_control,
+            infinite_likelihood=infinite & update,
+        )
         new_state = ParticleState(
             particles,
             log_weights,
@@ -923,21 +1028,32 @@ class ParticleFilter(eqx.Module):
         )
         return new_state, info
 
-    @eqx.filter_jit
     def run(
         self, state: ParticleState, controls, measurements, updates=None
     ) -> tuple[ParticleState, StepInfo]:
-        """Filter a whole sequence with one ``lax.scan``.
+        """Filter a whole sequence with one ``lax.scan`` (jit-compiled).
 
         Args:
-            state: initial state.
+            state: initial state (at least one particle).
             controls: pytree with leading axis ``[T]`` (e.g. ``[T k]`` relative odometry).
+                Concrete controls must be finite (checked once, before the scan); traced
+                ones with a NaN/inf step are flagged per step (``StepInfo.bad_control``).
             measurements: pytree with leading axis ``[T]`` (e.g. ``[T b]`` ranges).
             updates: optional ``[T]`` bool, measurement update on/off per step.
 
         Returns:
             The final state and the stacked ``[T]`` :class:`StepInfo`.
+
+        Raises:
+            ValueError: ``state`` has no particles, or a concrete control is NaN/inf
+                (the message names ``controls`` and the step).
         """
+        _check_particle_count(state.log_weights, "state")
+        _check_controls_concrete(controls, "controls", per_step=True)
+        return self._run(state, controls, measurements, updates)
+
+    @eqx.filter_jit
+    def _run(self, state: ParticleState, controls, measurements, updates=None):
         n_steps = jax.tree.leaves(controls)[0].shape[0]
         if updates is None:
             updates = jnp.ones(n_steps, bool)

@@ -34,7 +34,8 @@ import jax.numpy as jnp
 from jax.scipy.special import betainc
 from jaxtyping import Array, ArrayLike, Float
 
-from ..rays import HIT, SUB, SUP, RayBatch, is_concrete
+from .._math import log1mexp
+from ..rays import HIT, SUB, SUP, RayBatch, _reject, is_concrete
 from ..raytrace import (
     CellTerm,
     GridSpec,
@@ -84,6 +85,45 @@ def _check_stats(stats) -> GridStats:
     if not isinstance(stats, GridStats):
         raise ValueError(f"stats must be a GridStats, got {type(stats).__name__}")
     return stats
+
+
+def _nonneg_finite(xp, a):
+    return ~xp.isfinite(a) | (a < 0)
+
+
+def _checked_counts(stats: GridStats, fields: tuple[str, ...]) -> dict[str, Array]:
+    """``stats`` fields as float arrays checked to be finite and ``>= 0`` (``ValueError``
+    naming the field when concrete, ``eqx.error_if`` when traced)."""
+    dtype = jnp.result_type(float)
+    out = {}
+    for name in fields:
+        x = _reject(
+            getattr(stats, name),
+            _nonneg_finite,
+            f"stats.{name} must be finite and >= 0 (an infinite or NaN count or length "
+            "gives no posterior)",
+        )
+        out[name] = jnp.asarray(x, dtype)
+    return out
+
+
+def _check_map_fields(m, fields: tuple[str, ...], beta_zero_ok: bool) -> None:
+    """Concrete value checks of a posterior map built directly (``ValueError`` naming the
+    field); traced fields are checked at run time by :func:`term`."""
+    for name in fields:
+        if is_concrete(getattr(m, name)):
+            _reject(getattr(m, name), _nonneg_finite, f"{name} must be finite and >= 0")
+    if is_concrete(m.alpha):
+        _reject(m.alpha, lambda xp, a: ~(xp.isfinite(a) & (a > 0)), "alpha must be finite and > 0")
+    if is_concrete(m.beta):
+        bound = ">= 0" if beta_zero_ok else "> 0"
+        _reject(
+            m.beta,
+            (lambda xp, b: ~(xp.isfinite(b) & (b >= 0)))
+            if beta_zero_ok
+            else (lambda xp, b: ~(xp.isfinite(b) & (b > 0))),
+            f"beta must be finite and {bound}",
+        )
 
 
 def _check_prior_args(alpha, beta, prior) -> None:
@@ -207,6 +247,10 @@ class BetaPosteriorMap(eqx.Module):
         misses: ``[*shape]`` float, ``M_i``.
         alpha: ``[]`` prior parameter (> 0).
         beta: ``[]`` prior parameter (> 0).
+
+    Concrete fields are checked at construction (finite, ``hits``/``misses`` ``>= 0``;
+    ``ValueError`` naming the field); traced ones when a likelihood is evaluated
+    (``eqx.error_if``).
     """
 
     spec: GridSpec
@@ -224,6 +268,9 @@ class BetaPosteriorMap(eqx.Module):
     def b(self) -> Float[Array, "*shape"]:
         """``[*shape]`` second posterior parameter ``M_i + beta``."""
         return self.misses + self.beta
+
+    def __check_init__(self):
+        _check_map_fields(self, ("hits", "misses"), beta_zero_ok=False)
 
     def mean(self) -> Float[Array, "*shape"]:
         """``[*shape]`` posterior mean reflection probability ``a / (a + b)``."""
@@ -263,6 +310,11 @@ class GammaPosteriorMap(eqx.Module):
         lengths: ``[*shape]`` float, ``R_i`` (m).
         alpha: ``[]`` prior shape (> 0).
         beta: ``[]`` prior rate (m, >= 0; 0 is the improper uninformative prior).
+
+    Concrete fields are checked at construction (finite, ``hits``/``lengths`` ``>= 0``;
+    ``ValueError`` naming the field); traced ones when a likelihood is evaluated
+    (``eqx.error_if``). An infinite ``R_i`` or ``beta`` would make the rate posterior a
+    point mass at 0 and the likelihood ``log(inf) - log(inf + d)``, i.e. NaN.
     """
 
     spec: GridSpec
@@ -280,6 +332,9 @@ class GammaPosteriorMap(eqx.Module):
     def b(self) -> Float[Array, "*shape"]:
         """``[*shape]`` posterior rate ``R_i + beta`` (m)."""
         return self.lengths + self.beta
+
+    def __check_init__(self):
+        _check_map_fields(self, ("hits", "lengths"), beta_zero_ok=True)
 
     def mean(self) -> Float[Array, "*shape"]:
         """``[*shape]`` posterior mean decay rate ``a / b`` (1/m); ``inf`` where ``b = 0``."""
@@ -335,17 +390,20 @@ def beta_posterior(
         A :class:`BetaPosteriorMap` over ``stats.spec``.
 
     Raises:
-        ValueError: bad ``stats``/``alpha``/``beta``/``prior`` (message names the argument).
+        ValueError: bad ``stats``/``alpha``/``beta``/``prior`` (message names the argument),
+            including NaN, infinite or negative entries of the used ``stats`` fields (under
+            ``jit``: a runtime ``eqx.error_if`` error with the same message).
     """
     stats = _check_stats(stats)
+    counts = _checked_counts(stats, ("hits", "misses"))
     alpha, beta = _resolve_prior(stats, alpha, beta, prior, beta_moment_prior, (1.0, 1.0))
     alpha = _check_param(alpha, "alpha", allow_zero=False)
     beta = _check_param(beta, "beta", allow_zero=False)
     dtype = jnp.result_type(float)
     return BetaPosteriorMap(
         spec=stats.spec,
-        hits=jnp.asarray(stats.hits, dtype),
-        misses=jnp.asarray(stats.misses, dtype),
+        hits=counts["hits"],
+        misses=counts["misses"],
         alpha=alpha.astype(dtype),
         beta=beta.astype(dtype),
     )
@@ -374,17 +432,20 @@ def gamma_posterior(
         A :class:`GammaPosteriorMap` over ``stats.spec``.
 
     Raises:
-        ValueError: bad ``stats``/``alpha``/``beta``/``prior`` (message names the argument).
+        ValueError: bad ``stats``/``alpha``/``beta``/``prior`` (message names the argument),
+            including NaN, infinite or negative entries of the used ``stats`` fields (under
+            ``jit``: a runtime ``eqx.error_if`` error with the same message).
     """
     stats = _check_stats(stats)
+    counts = _checked_counts(stats, ("hits", "lengths"))
     alpha, beta = _resolve_prior(stats, alpha, beta, prior, gamma_moment_prior, (1.0, 0.0))
     alpha = _check_param(alpha, "alpha", allow_zero=False)
     beta = _check_param(beta, "beta", allow_zero=True)
     dtype = jnp.result_type(float)
     return GammaPosteriorMap(
         spec=stats.spec,
-        hits=jnp.asarray(stats.hits, dtype),
-        lengths=jnp.asarray(stats.lengths, dtype),
+        hits=counts["hits"],
+        lengths=counts["lengths"],
         alpha=alpha.astype(dtype),
         beta=beta.astype(dtype),
     )
@@ -417,12 +478,15 @@ def _log_l_dec(a, b, d, delta):
 
 
 def _log1mexp(x):
-    """``log(1 - exp(x))`` for ``x <= 0``, stable at both ends, NaN-free gradients."""
-    x = jnp.minimum(x, 0.0)
-    near = x > -math.log(2.0)
-    x_near = jnp.where(near, x, -1.0)
-    x_far = jnp.where(near, -1.0, x)
-    return jnp.where(near, jnp.log(-jnp.expm1(x_near)), jnp.log1p(-jnp.exp(x_far)))
+    """``log(1 - exp(x))`` for ``x < 0``, stable at both ends; ``-inf`` for ``x >= 0``.
+
+    NaN-free in value and gradient: both branches see only arguments where they are
+    finite (double ``where``), and ``x >= 0`` (including ``+inf``, e.g. the log-density
+    of a HIT ray above 0, whose SUB branch is computed and then discarded) gets a zero
+    gradient. The previous form clipped ``x`` to 0 and differentiated ``log(-expm1(0))``,
+    whose infinite derivative times the zero cotangent of the untaken branch gave NaN.
+    """
+    return jnp.where(jnp.isnan(x), x, log1mexp(-x))
 
 
 def _gather(values: Array, cells: Array) -> Array:
@@ -496,11 +560,28 @@ def log_likelihood(
     return _log_likelihood(posterior_map, rays, max_cells=max_cells)
 
 
+def _checked_ab(posterior_map):
+    """Posterior parameters ``(a, b)``; traced ones carry a run-time check (``a > 0`` and
+    ``b > 0``, ``b >= 0`` for the Gamma posterior, both finite): an infinite or NaN
+    statistic would otherwise turn likelihoods into NaN (``log(inf) - log(inf + d)``).
+    Concrete maps were checked when they were built."""
+    a, b = posterior_map.a, posterior_map.b
+    if is_concrete(a) and is_concrete(b):
+        return a, b
+    b_ok = b >= 0 if isinstance(posterior_map, GammaPosteriorMap) else b > 0
+    bad = ~(jnp.isfinite(a) & jnp.isfinite(b) & (a > 0) & b_ok)
+    a = eqx.error_if(
+        a,
+        bad,
+        f"{type(posterior_map).__name__}: hits, misses/lengths, alpha and beta must be "
+        "finite and >= 0 (alpha > 0)",
+    )
+    return a, b
 
 
 def term(posterior_map):
     """Per-cell summand of ``log L`` for a cell the ray passes without reflection."""
-    a, b = posterior_map.a, posterior_map.b
+    a, b = _checked_ab(posterior_map)
     if isinstance(posterior_map, BetaPosteriorMap):
         return CellTerm.linear(offset=_log_l_ref(a, b, False))
     return CellTerm.gamma(a, b)

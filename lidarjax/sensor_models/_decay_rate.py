@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
+import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from ..maps._grid import DecayRateMap, grid_optical_depth, rate_term
-from ..rays import HIT, SUB, RayBatch
+from ..rays import HIT, SUB, RayBatch, is_concrete
 from ..raytrace import RayFold
 from ._common import (
     check_model_inputs,
@@ -19,9 +20,23 @@ from ._common import (
 )
 
 
+def _checked(m: DecayRateMap) -> DecayRateMap:
+    """``m`` with a run-time check (``eqx.error_if``) that traced rates are finite and
+    ``>= 0``. Concrete maps are checked when built; a traced infinite rate would give
+    ``inf * 0 = NaN`` pose gradients (and ``-inf`` values) instead of an error."""
+    if is_concrete(m.rates) and is_concrete(m.outside_rate):
+        return m
+    bad = jnp.any(~jnp.isfinite(m.rates) | (m.rates < 0))
+    bad = bad | ~jnp.isfinite(m.outside_rate) | (m.outside_rate < 0)
+    rates = eqx.error_if(
+        m.rates, bad, "DecayRateMap: rates and outside_rate (1/m) must be finite and >= 0"
+    )
+    return eqx.tree_at(lambda t: t.rates, m, rates)
+
+
 def term(m: DecayRateMap):
     """Per-cell summand ``lambda_i d_i`` of the optical depth."""
-    return rate_term(m)
+    return rate_term(_checked(m))
 
 
 def finish(m: DecayRateMap, f: RayFold, origin, direction, length, kind):
@@ -69,7 +84,9 @@ def log_likelihood(
 
     Raises:
         ValueError: ``map`` is not a :class:`~lidarjax.maps.DecayRateMap`, ``rays`` is not
-            a :class:`~lidarjax.rays.RayBatch`, or their dimensions differ.
+            a :class:`~lidarjax.rays.RayBatch`, or their dimensions differ. Traced rates
+            that are infinite, NaN or negative raise at run time (``eqx.error_if``);
+            concrete ones are rejected when the map is built.
     """
     check_model_inputs(map, DecayRateMap, rays)
     mc = default_max_cells(map.spec, trace_lengths(rays), max_cells)

@@ -4,7 +4,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed-stamp
 
-.PHONY: demo test bench lint install native clean
+.PHONY: demo test test-slow test-all bench lint install native clean
 
 $(PY):
 	$(PYTHON) -m venv $(VENV)
@@ -26,9 +26,15 @@ native: $(STAMP)
 demo: install
 	$(PY) experiments/demo.py
 
+# The suite without the tests marked slow (long real-data runs); CI runs both targets.
 test: install
 	$(VENV)/bin/ruff check .
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -m "not slow"
+
+test-slow: install
+	$(PY) -m pytest -q -m slow
+
+test-all: test test-slow
 
 bench: install
 	@set -e; for b in benchmarks/[a-z]*.py; do echo "== $$b"; $(PY) $$b; done

@@ -787,10 +787,11 @@ class PolylineOptimization(eqx.Module):
     Attributes:
         map: the optimised :class:`PolylineMap` (same topology and slots as the input).
         sse_before_m2: ``Σ d²`` over the explained rays before optimisation (m²).
-        sse_after_m2: the same after optimisation (never larger).
+        sse_after_m2: the same for the returned :attr:`map` (never larger; it is the true
+            first-intersection error of exactly the returned vertices).
         step_fraction: the accepted fraction of the last round's least-squares step (1
             unless that solution changed which rays the map explains or raised the true
-            error).
+            error; 0 if no trial fraction was accepted and the round kept its vertices).
         result: the optimistix result code of the last round's solve.
         n_steps: solver steps taken over all rounds.
     """
@@ -804,7 +805,10 @@ class PolylineOptimization(eqx.Module):
 
 
 _ANCHOR = 1e-3
-_FRACTIONS = (1.0, 0.5, 0.25, 0.125, 0.0625, 0.03125, 0.0)
+# trial fractions of a round's least-squares step, largest first; when none is accepted
+# the round keeps its current vertices (no trial of fraction 0: re-projecting the end
+# vertices onto their rays need not reproduce the current map to the last bit)
+_FRACTIONS = (1.0, 0.5, 0.25, 0.125, 0.0625, 0.03125)
 
 
 def _true_sse(m: PolylineMap, sc: _Scan):
@@ -882,9 +886,14 @@ def _plus_one(m: PolylineMap, sc: _Scan, solver, max_steps: int, n_params: int, 
             return ok, sse, vv
 
         oks, sses, vvs = jax.vmap(trial)(fracs)
-        best = jnp.argmax(oks)  # the first (largest) accepted fraction; 0 always qualifies
-        sse_new = jnp.where(oks[best], sses[best], sse_cur)
-        carry = (vvs[best], sse_new, n_steps + sol.stats["num_steps"], fracs[best])
+        best = jnp.argmax(oks)  # the first (largest) accepted fraction, if any
+        accept = oks[best]
+        # nothing accepted: keep the current vertices and their true error unchanged, so
+        # the carried (vertices, sse) pair always belongs together and sse never rises
+        verts_new = jnp.where(accept, vvs[best], verts)
+        sse_new = jnp.where(accept, sses[best], sse_cur)
+        frac = jnp.where(accept, fracs[best], 0.0)
+        carry = (verts_new, sse_new, n_steps + sol.stats["num_steps"], frac)
         return carry, sol.result
 
     init = (m.vertices, sse0, jnp.zeros((), jnp.int32), jnp.ones((), m.vertices.dtype))
@@ -932,11 +941,13 @@ def optimize_polylines(
 
     The solve runs for ``rounds`` rounds; each re-associates the rays with the current
     map, solves, and checks the result with the true first-intersection model: the
-    largest step fraction in ``(1, 1/2, ..., 1/32, 0)`` that keeps exactly PLE's explained
-    rays explained without raising ``Σ d²`` is accepted. So the likelihood never
-    decreases and ``f`` is unchanged (the fixed association alone lets a line run past a
-    corner, which lowers the surrogate but raises the true error). Batched over
-    ``[*scans]`` with ``vmap``.
+    largest step fraction in ``(1, 1/2, ..., 1/32)`` that keeps exactly PLE's explained
+    rays explained without raising ``Σ d²`` is accepted; if none qualifies, the round
+    keeps its current vertices unchanged. So the returned map is either the input map
+    itself or one that passed this check: the likelihood never decreases, ``f`` is
+    unchanged and ``sse_after_m2`` is the true error of the returned vertices (the fixed
+    association alone lets a line run past a corner, which lowers the surrogate but raises
+    the true error). Batched over ``[*scans]`` with ``vmap``.
 
     Args:
         extraction: a :class:`PolylineExtraction` (or its map) of these rays, in the PLE

@@ -282,8 +282,14 @@ def ray_segment(
     """Distance along one 2-D ray to its intersection with one line segment.
 
     Solves ``origin + t * direction = start + u * (end - start)`` for ``t > 0`` and
-    ``u`` in ``[0, 1]`` (widened by a few ulps so a ray through a vertex hits both
-    segments that share it). Parallel rays (and degenerate segments) miss. NaN-free: the
+    ``u`` in ``[0, 1]``. Both segment ends are inclusive up to round-off: ``u`` may lie
+    outside ``[0, 1]`` by ``64 eps (|origin| + |start - origin| + |end - start|) |direction|
+    / |direction x (end - start)|`` (``|.|`` the 1-norm; the error of ``u`` when a vertex
+    lies on the ray up to rounding of its coordinates, e.g. a vertex placed at
+    ``origin + r * direction``), so a ray through a vertex hits both segments that share
+    it and a ray whose endpoint is a polyline's end vertex hits that polyline, also at
+    long range and grazing incidence. Parallel rays (``|direction x (end - start)|`` below
+    ``64 eps |end - start| |direction|``) and degenerate segments miss. NaN-free: the
     gradient is finite everywhere and exact wherever the ray hits the segment's interior.
 
     Args:
@@ -304,7 +310,13 @@ def ray_segment(
     den_safe = jnp.where(ok, den, 1.0)
     t = cross2(w, e) / den_safe
     u = cross2(w, direction) / den_safe
-    slack = 64 * jnp.finfo(den.dtype).eps
+    # round-off of u: the numerator cross2(w, direction) carries the rounding of the
+    # coordinates (~eps (|origin| + |w|) |direction|), the denominator that of e; 1-norms
+    # (no square roots: the bound only enters a comparison). It is >= 64 eps, as
+    # |den| <= |e| |direction|.
+    norm1 = lambda x: jnp.sum(jnp.abs(x))  # noqa: E731
+    u_scale = (norm1(origin) + norm1(w) + norm1(e)) * norm1(direction)
+    slack = 64 * jnp.finfo(den.dtype).eps * u_scale / jnp.abs(den_safe)
     hit = ok & (t > 0) & (u >= -slack) & (u <= 1 + slack)
     return jnp.where(hit, t, jnp.inf)
 

@@ -184,6 +184,14 @@ def _log_problem(name) -> str | None:
     return None
 
 
+def _check_logs_and_figure_log(problems, cfg) -> None:
+    """``cfg.logs`` and ``cfg.figure_log`` name registered logs."""
+    _check_logs(problems, "logs", cfg.logs)
+    why = _log_problem(cfg.figure_log)
+    if why:
+        problems.append(("figure_log", cfg.figure_log, why))
+
+
 def _check_logs(problems, key: str, names, *, allow_empty: bool = False) -> None:
     names = list(names)
     if not names and not allow_empty:
@@ -685,10 +693,7 @@ class DctMapsConfig:
 
     @staticmethod
     def check(cfg, problems) -> None:
-        _check_logs(problems, "logs", cfg.logs)
-        why = _log_problem(cfg.figure_log)
-        if why:
-            problems.append(("figure_log", cfg.figure_log, why))
+        _check_logs_and_figure_log(problems, cfg)
 
 
 @dataclass
@@ -715,10 +720,7 @@ class DecayRateFieldsConfig:
 
     @staticmethod
     def check(cfg, problems) -> None:
-        _check_logs(problems, "logs", cfg.logs)
-        why = _log_problem(cfg.figure_log)
-        if why:
-            problems.append(("figure_log", cfg.figure_log, why))
+        _check_logs_and_figure_log(problems, cfg)
 
 
 # --------------------------------------------------------------------------------------

@@ -18,6 +18,7 @@ import jaxlie
 import numpy as np
 import pytest
 from helpers import finite_difference
+from test_localization import _small_world
 
 from lidarjax.datasets._synthetic import OfficeWorld, simulate_scans
 from lidarjax.maps import (
@@ -59,22 +60,7 @@ FNS = {
 
 
 def _world() -> OfficeWorld:
-    segs = [
-        ((0.0, 0.0), (4.0, 0.0)),
-        ((4.0, 0.0), (4.0, 3.0)),
-        ((4.0, 3.0), (0.0, 3.0)),
-        ((0.0, 3.0), (0.0, 0.0)),
-        ((2.3, 1.3), (2.7, 1.3)),
-        ((2.7, 1.3), (2.7, 1.7)),
-        ((2.7, 1.7), (2.3, 1.7)),
-        ((2.3, 1.7), (2.3, 1.3)),
-    ]
-    return OfficeWorld(
-        segments=np.asarray(segs, np.float64),
-        bounds=np.array([[0.0, 0.0], [4.0, 3.0]]),
-        waypoints=np.array([[1.0, 1.0], [3.0, 2.5]]),
-        seed=0,
-    )
+    return _small_world()  # 4 m x 3 m room with a 0.4 m pillar
 
 
 def _stats() -> GridStats:

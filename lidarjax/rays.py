@@ -173,8 +173,8 @@ class RayBatch(eqx.Module):
     Construction validates the values (``ValueError`` naming the field when they are
     concrete, ``eqx.error_if`` when traced under ``jit``): ``origins`` and ``directions``
     finite; ``ranges`` not NaN, not negative, ``+inf`` only for SUP rays; ``kind`` one of
-    HIT/SUB/SUP; ``r_min`` finite and ``>= 0``; ``r_max >= r_min`` (``inf`` allowed). A zero
-    direction is allowed (the ray tracers treat it as a zero-length ray). Concrete fields
+    HIT/SUB/SUP; ``r_min`` finite and ``>= 0``; ``r_max >= r_min`` (``inf`` allowed); no
+    direction is the zero vector (it would count a miss and no hit). Concrete fields
     are stored as given, traced ones as the checked arrays.
 
     Attributes:
@@ -204,9 +204,13 @@ class RayBatch(eqx.Module):
             origins, lambda xp, a: ~xp.isfinite(a), "origins must be finite (NaN or inf pose?)"
         )
         self.directions = _reject(
-            directions,
-            lambda xp, a: ~xp.isfinite(a),
-            "directions must be finite (NaN or inf heading/azimuth?)",
+            _reject(
+                directions,
+                lambda xp, a: ~xp.isfinite(a),
+                "directions must be finite (NaN or inf heading/azimuth?)",
+            ),
+            lambda xp, a: xp.all(a == 0, axis=-1, keepdims=True),
+            "directions must be non-zero (a zero direction has no ray to walk)",
         )
         self.kind = _reject(
             kind,
@@ -270,8 +274,8 @@ class RayBatch(eqx.Module):
 
 @functools.cache
 def _raybatch_treedef():
-    z = np.zeros((1, 2))
-    return jax.tree.structure(RayBatch(z, z, np.zeros(1), np.zeros(1, np.int32), 0.0, 1.0))
+    z, unit = np.zeros((1, 2)), np.array([[1.0, 0.0]])
+    return jax.tree.structure(RayBatch(z, unit, np.zeros(1), np.zeros(1, np.int32), 0.0, 1.0))
 
 
 def _kind_of(ranges_m, r_min, r_max):

@@ -199,3 +199,27 @@ def test_traced_maps_are_not_host_checked():
 
     g = jax.grad(total)(m.parameters())
     np.testing.assert_allclose(g, 2 * m.parameters(), rtol=1e-6)
+
+
+# a zero direction used to be walked as a zero-length ray: a miss and no hit
+@pytest.mark.parametrize("dim", [2, 3])
+def test_raybatch_rejects_zero_direction(dim):
+    o = np.zeros((3, dim))
+    d = np.eye(dim)[[0, 1, 0]].astype(float)
+    d[2] = 0.0
+    args = (np.ones(3), np.zeros(3, np.int32), 0.0, 5.0)
+    with pytest.raises(ValueError, match="directions must be non-zero"):
+        lr.RayBatch(o, d, *args)
+    d[2, -1] = 1e-30  # tiny but non-zero: a valid direction
+    assert lr.RayBatch(o, d, *args).directions.shape == (3, dim)
+
+
+def test_raybatch_rejects_zero_direction_under_jit():
+    def build(d):
+        return lr.RayBatch(jnp.zeros((2, 2)), d, jnp.ones(2), jnp.zeros(2, jnp.int32), 0.0, 5.0)
+
+    f = jax.jit(lambda d: build(d).directions)
+    ok = jnp.array([[1.0, 0.0], [0.0, -1.0]])
+    np.testing.assert_array_equal(np.asarray(f(ok)), np.asarray(ok))
+    with pytest.raises(Exception, match="directions must be non-zero"):
+        jax.block_until_ready(f(jnp.array([[1.0, 0.0], [0.0, 0.0]])))

@@ -87,10 +87,21 @@ def test_mcl_remedies_keeps_extending_mcl():
     validate(cfg, "mcl_remedies")
 
 
+def _experiment(name: str):
+    """experiments/<name>.py loaded by path (``benchmarks/`` has modules of the same names,
+    which another test may have put first on ``sys.path``)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(
+        f"_experiment_{name}", ROOT / "experiments" / f"{name}.py"
+    )
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
 def test_name_lists_match_the_experiments():
-    import mcl
-    import mcl_remedies
-    import polylines
+    mcl, mcl_remedies, polylines = (_experiment(n) for n in ("mcl", "mcl_remedies", "polylines"))
 
     assert tuple(mcl.NAMES) == _schemas.MCL_MODELS
     assert tuple(polylines.METHODS) == _schemas.POLYLINE_METHODS

@@ -550,6 +550,7 @@ def test_reference_pcd_reads_the_shared_file():
     assert ref_lzf(bytes([0x02, *b"abc", 0xC0, 0x02]), 11) == b"abcabcabcab"
 
 
+@pytest.mark.slow  # > 5 s: runs in make test-slow / CI
 def test_fuzz_synpeb_shared_file(tmp_path):
     """The full shared ASCII file: ``read_pcd`` and ``load_synpeb_pcd`` on the same mutants."""
     raw = _synpeb_file()

@@ -19,6 +19,7 @@ def run_experiment(name: str, out: Path, *overrides: str) -> dict:
     return json.loads((out / "results.json").read_text())
 
 
+@pytest.mark.slow  # > 5 s: runs in make test-slow / CI
 def test_demo_small(tmp_path):
     res = run_experiment(
         "demo", tmp_path, "scans.n_poses=30", "scans.n_beams=91", "grid.resolution_m=0.1"
@@ -32,6 +33,7 @@ def test_demo_small(tmp_path):
         assert (tmp_path / f).stat().st_size > 0
 
 
+@pytest.mark.slow  # > 5 s: runs in make test-slow / CI
 def test_posterior_corridor_small(tmp_path):
     """Section 8.5.1 on 200 runs: FMP beats MLM at n = 1 for both models (Fig. 8.2)."""
     res = run_experiment(

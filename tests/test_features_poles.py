@@ -163,6 +163,7 @@ def synthetic_rays(poles_xyr, sensors, n_az=720, height=4.0, r_max=40.0):
 SMALL = PoleConfig(extent_m=(20.0, 20.0, 4.0), max_poles=16)
 
 
+@pytest.mark.slow  # > 5 s: runs in make test-slow / CI
 def test_extract_poles_finds_cylinders():
     truth = np.array([[5.05, 3.1, 0.15], [-4.2, 6.3, 0.25], [2.5, -7.1, 0.1]])
     rays = synthetic_rays(truth, [(0.0, 0.0, 1.73), (1.0, 0.2, 1.73)])
@@ -249,6 +250,7 @@ def test_poles_container_and_bad_input():
         extract_poles_from_occupancy(jnp.zeros((10, 10, 5)), spec, config={"q_min": 0.5})
 
 
+@pytest.mark.slow  # > 5 s: runs in make test-slow / CI
 def test_fast_occupancy_equals_occupancy():
     from lidarjax.features import fast_occupancy
     from lidarjax.maps import beta_posterior, occupancy

@@ -194,6 +194,7 @@ def test_ray_segment_gradients():
 # ---------------------------------------------------------------- polyline map
 
 
+@pytest.mark.slow  # > 5 s: runs in make test-slow / CI
 def test_polyline_map_roundtrip_and_expected_ranges():
     rng = np.random.default_rng(1)
     pls = [rng.uniform(-5, 5, (4, 2)), rng.uniform(-5, 5, (2, 2)), rng.uniform(-5, 5, (3, 2))]
@@ -227,6 +228,7 @@ def test_polyline_map_bad_input():
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.slow  # > 5 s: runs in make test-slow / CI
 def test_ple_removal_order_and_errors_match_brute_force(seed):
     """Eq. (10.3) errors equal brute-force likelihood differences, and the fast greedy loop
     removes exactly the vertices a naive O(n^2) loop removes, in the same order."""
@@ -266,6 +268,7 @@ def test_ple_closed_scan_matches_brute_force():
     assert cls == [True] and gcl == [True] and len(got[0]) == 6
 
 
+@pytest.mark.slow  # > 5 s: runs in make test-slow / CI
 def test_ple_batched_equals_single_and_criteria():
     scans = [office_scan(s, n=90) for s in (4, 5)]
     az = scans[0][0]
@@ -315,6 +318,7 @@ def test_ple_bad_input():
 # ---------------------------------------------------------------- PLE+
 
 
+@pytest.mark.slow  # > 5 s: runs in make test-slow / CI
 def test_ple_plus_never_increases_the_objective():
     """On simulated polygon scans PLE+ lowers Σ d² (true first-intersection model), keeps
     the explained set (f unchanged) and reports the sums it reached."""

@@ -88,6 +88,7 @@ def test_concrete_bad_control_raises_naming_control(bad):
 
 
 @pytest.mark.parametrize("config", ["plain", "kld", "augmented"])
+@pytest.mark.slow  # > 5 s: runs in make test-slow / CI
 def test_traced_bad_control_keeps_particles_and_flags_the_step(config):
     pf, state = _filter(config), _state(1)
     T = 6

@@ -108,6 +108,7 @@ def test_objective_equals_sum_of_log_likelihoods(sim_rays):
 # 2./3. recovery, solver result, errors, compile once
 
 
+@pytest.mark.slow  # > 5 s: runs in make test-slow / CI
 def test_fit_recovers_known_map(sim_rays, monkeypatch):
     # the jitted solver may be traced once for this problem size
     monkeypatch.setattr(
@@ -248,6 +249,7 @@ def simulate_scan(pose, azimuths, segs, noise, rng):
     return r + noise * rng.standard_normal(r.shape)
 
 
+@pytest.mark.slow  # > 5 s: runs in make test-slow / CI
 def test_scan_matching_in_synthetic_room():
     rng = np.random.default_rng(0)
     segs = room_segments()

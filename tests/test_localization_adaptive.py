@@ -159,6 +159,7 @@ def _brute_bins(v, active, bin_size, angle_dims):
     return len({tuple(row) for row in b[np.asarray(active)]})
 
 
+@pytest.mark.slow  # > 5 s: runs in make test-slow / CI
 def test_count_occupied_bins_vs_brute_force():
     rng = np.random.default_rng(0)
     count = jax.jit(count_occupied_bins, static_argnums=2)
@@ -337,6 +338,7 @@ def test_kld_count_follows_fox_rule(key):
         assert np.all(lw0[m:] == -np.inf) and int(deg.n_active) == m
 
 
+@pytest.mark.slow  # > 5 s: runs in make test-slow / CI
 def test_kld_filter_shrinks_and_tracks_kalman(key):
     """Prior std 0.5 m, measurement std 0.2 m, bins 0.1 m: the live count drops as the
     posterior concentrates, and the weighted mean matches the Kalman posterior mean
@@ -400,6 +402,7 @@ def _loop(pf, state, z):
     return states, jax.tree.map(lambda *x: np.stack([np.asarray(a) for a in x]), *infos)
 
 
+@pytest.mark.slow  # > 5 s: runs in make test-slow / CI
 def test_augmented_injects_after_kidnapping(key):
     """The robot sits at the origin; from step 15 the measurement says (4, 4): w_fast
     drops below w_slow, particles are injected (Binomial(n, p) many) and the filter
@@ -433,6 +436,7 @@ def test_augmented_injects_after_kidnapping(key):
     assert np.all(np.linalg.norm(xy - 4.0, axis=1) > 1)
 
 
+@pytest.mark.slow  # > 5 s: runs in make test-slow / CI
 def test_augmented_log_averages_vs_linear_reference(key):
     """The log-space averages equal a float64 linear-space reference: the normalised
     exponential means ``sum_k a (1-a)^(t-k) w_k / sum_k a (1-a)^(t-k)`` of the weighted
@@ -606,6 +610,7 @@ class WideProposal(eqx.Module):
         return particles @ from_vector(xi), lc if self.corrected else jnp.zeros(n, dtype)
 
 
+@pytest.mark.slow  # > 5 s: runs in make test-slow / CI
 def test_proposal_hook_is_a_valid_importance_sampler(key):
     """A 2x wider proposal with the right correction reproduces the Kalman posterior
     (mean and variance); the same proposal without the correction is visibly too wide."""
@@ -643,6 +648,7 @@ def test_proposal_hook_is_a_valid_importance_sampler(key):
 # --------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow  # > 5 s: runs in make test-slow / CI
 def test_run_vmap_all_features(key):
     n, T, runs = 256, 10, 3
     spec = GridSpec(np.array([-2.0, -2.0]), 0.5, (12, 12))

@@ -416,6 +416,7 @@ def _kalman(controls, z, updates):
 
 
 @pytest.mark.skipif(not HOOK, reason="ParticleFilter.step has no proposal hook yet")
+@pytest.mark.slow  # > 5 s: runs in make test-slow / CI
 def test_filter_with_guided_motion_tracks_kalman_posterior(key):
     """Heading fixed, linear-Gaussian motion and measurement: the guided filter's mean
     matches the Kalman filter within Monte-Carlo error, and its n_eff beats the plain
@@ -460,6 +461,7 @@ AZ = np.linspace(-np.pi, np.pi, 9, endpoint=False)
 R_MIN, R_MAX = 0.1, 2.0
 
 
+@pytest.mark.slow  # > 5 s: runs in make test-slow / CI
 def test_smooth_scan_surrogate_matches_per_particle_scan():
     m = _map()
     rng = np.random.default_rng(1)
@@ -490,6 +492,7 @@ def test_smooth_scan_surrogate_matches_per_particle_scan():
     assert not np.allclose(np.asarray(unblurred(particles, ranges)), got)
 
 
+@pytest.mark.slow  # > 5 s: runs in make test-slow / CI
 def test_smooth_scan_surrogate_gradient_drives_the_shift():
     m = _map(2)
     true_pose = jaxlie.SE2.from_xy_theta(0.2, -0.1, 0.4)
@@ -570,6 +573,7 @@ class GaussianXY(eqx.Module):
         return -0.5 * jnp.einsum("ni,ij,nj->n", d, self.precision, d)
 
 
+@pytest.mark.slow  # > 5 s: runs in make test-slow / CI
 def test_curvature_proposal_is_exact_for_a_gaussian_likelihood_in_xi(key):
     """With the heading noise off, the robot-frame increment enters the world position
     linearly, so a Gaussian likelihood of (x, y) makes the posterior over xi Gaussian; the
@@ -592,6 +596,7 @@ def test_curvature_proposal_is_exact_for_a_gaussian_likelihood_in_xi(key):
     assert np.ptp(np.asarray(sur(new_p, None)) + np.asarray(corr_p)) > 1.0
 
 
+@pytest.mark.slow  # > 5 s: runs in make test-slow / CI
 def test_curvature_proposal_unbiased_for_nonlinear_likelihood(key):
     """A non-Gaussian likelihood in x (quartic well, offset from the prior): the weighted
     particles of the Laplace proposal (2 Newton steps, kappa = 1.5) reproduce the posterior
@@ -630,6 +635,7 @@ def test_curvature_proposal_unbiased_for_nonlinear_likelihood(key):
     assert n_eff > 0.5 * n  # the proposal is close to the posterior
 
 
+@pytest.mark.slow  # > 5 s: runs in make test-slow / CI
 def test_curvature_hessian_and_shift_vs_finite_differences():
     """The Newton shift equals s * (I + B)^-1 (s * g) with g and the Hessian from central
     finite differences of the surrogate in xi (nonlinear SE2 surrogate, all components)."""

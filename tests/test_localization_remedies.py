@@ -199,6 +199,7 @@ def test_scan_model_remedy_bad_arguments(scan):
         ScanModel(m, AZ, R_MIN, float("inf"), z_rand=0.1)
 
 
+@pytest.mark.slow  # > 5 s: runs in make test-slow / CI
 def test_coarse_to_fine_uses_the_level_of_the_spread(scan):
     """Each call equals the ScanModel of the level picked by the particles' spread (RMS
     distance from their mean): coarse for a wide cloud, the finest for a tight one; under

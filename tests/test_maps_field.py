@@ -311,6 +311,7 @@ def simulate(field, rng, n, *, r_min=0.2, r_max=3.0):
     return RayBatch(o, d, jnp.asarray(r), jnp.asarray(kind), r_min, r_max)
 
 
+@pytest.mark.slow  # > 5 s: runs in make test-slow / CI
 def test_fit_recovers_a_field_from_simulated_rays():
     truth = PlaneField(
         theta=jnp.asarray([0.2, 0.5, -0.3]), lower=jnp.zeros(2), extent=jnp.full(2, 4.0)
@@ -336,6 +337,7 @@ def test_fit_recovers_a_field_from_simulated_rays():
     assert fitted.lower is start.lower  # the box is not a parameter
 
 
+@pytest.mark.slow  # > 5 s: runs in make test-slow / CI
 def test_generic_fit_of_a_dct_map_matches_fit_dct():
     truth = BumpField(
         amps=jnp.asarray([3.0, 2.0]),
@@ -424,6 +426,7 @@ def test_pose_gradients_through_any_field(which):
     np.testing.assert_allclose(g, fd, rtol=1e-5, atol=1e-5)
 
 
+@pytest.mark.slow  # > 5 s: runs in make test-slow / CI
 def test_refine_pose_on_a_user_field():
     """Coarse-to-fine refinement on a user's field (a blurred copy first) reaches the
     maximum-likelihood pose that refinement from the true pose finds."""

@@ -20,6 +20,7 @@ def intel():
 
 
 @pytest.mark.parametrize("model", ["dec", "end"])
+@pytest.mark.slow  # > 5 s: runs in make test-slow / CI
 def test_mcl_localizes_real_segment(intel, model):
     """Odd Intel scans 1..121 (not used for mapping), raw odometry, 300 particles from an
     offset start: mean position error over all 60 steps < 0.2 m."""

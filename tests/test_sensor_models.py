@@ -427,6 +427,7 @@ def test_pose_gradient_matches_finite_differences(model):
 # Pose batching
 
 
+@pytest.mark.slow  # > 5 s: runs in make test-slow / CI
 def test_log_likelihood_at_poses_matches_direct_evaluation():
     rng = np.random.default_rng(4)
     spec = GridSpec([-3.0, -3.0], 0.5, (12, 12))

@@ -219,6 +219,7 @@ def _assert_same(fast, ref):
 
 @pytest.mark.parametrize("limits", LIMITS, ids=["finite", "rmin0_rmaxinf", "short_rmax"])
 @pytest.mark.parametrize("name", list(REFERENCE))
+@pytest.mark.slow  # > 4 s: runs in make test-slow / CI
 def test_batch_matches_differentiable_2d(name, limits):
     spec, o, d, r = _geometry(2)
     rays = _all_kinds(o, d, r, *limits)  # 3 x 67 rays, not a multiple of chunk_size
@@ -270,6 +271,7 @@ def _fold_reference(spec, o, d, lengths, values):
 
 
 @pytest.mark.parametrize(("dim", "chunk_size"), [(2, 7), (3, 64)])
+@pytest.mark.slow  # > 4 s: runs in make test-slow / CI
 def test_fold_rays_matches_fold_traversal(dim, chunk_size):
     spec, o, d, r = _geometry(dim, seed=11, n_random=30)
     n = len(r)
@@ -304,6 +306,7 @@ def test_fold_rays_matches_fold_traversal(dim, chunk_size):
 
 
 @pytest.mark.parametrize("streams", [1, 3])
+@pytest.mark.slow  # > 4 s: runs in make test-slow / CI
 def test_fold_rays_streams_do_not_change_results(streams):
     spec, o, d, r = _geometry(2, seed=5, n_random=30)
     values = jnp.asarray(np.random.default_rng(6).uniform(0.1, 2.0, spec.shape))

@@ -253,6 +253,7 @@ def test_ple_removal_order_and_errors_match_brute_force(seed):
     assert int(res.stats.n_vertices) <= j_max
 
 
+@pytest.mark.slow  # > 4 s: runs in make test-slow / CI
 def test_ple_closed_scan_matches_brute_force():
     poly = random_polygon(6, seed=3, radius_range_m=(2.0, 4.0))
     az, r = simulate_polygon_scan(poly, n_rays=90, seed=3)

@@ -84,6 +84,7 @@ def sim_rays():
 # 1. the precomputed objective
 
 
+@pytest.mark.slow  # > 4 s: runs in make test-slow / CI
 def test_objective_equals_sum_of_log_likelihoods(sim_rays):
     rays = jax.tree.map(lambda x: x[:150] if x.ndim else x, sim_rays)
     counts = rays.counts()

@@ -160,6 +160,7 @@ CASES = [
 
 @pytest.mark.parametrize("case", CASES)
 @pytest.mark.parametrize("model", MODELS)
+@pytest.mark.slow  # > 4 s: runs in make test-slow / CI
 def test_pose_gradient_finite_where_value_finite(maps, model, case):
     m = maps[model]
     pose, *rest = _args(case)

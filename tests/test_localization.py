@@ -669,6 +669,7 @@ def test_run_equals_python_loop_of_steps(key):
     assert bool(jnp.any(infos.resampled))
 
 
+@pytest.mark.slow  # > 4 s: runs in make test-slow / CI
 def test_run_vmap_over_keys(key):
     n_runs = 2
     controls, z, _ = _toy_data()

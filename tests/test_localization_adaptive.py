@@ -478,6 +478,7 @@ def test_augmented_log_averages_vs_linear_reference(key):
     np.testing.assert_array_equal(traces[1000.0][:, 2], traces[0.0][:, 2])
 
 
+@pytest.mark.slow  # > 4 s: runs in make test-slow / CI
 def test_injected_particles_come_from_the_injector(key):
     """An injector that puts every pose at a marker: right after the first injection
     exactly ``info.injected`` particles sit at the marker, the others are resampled

@@ -213,6 +213,7 @@ def test_init_from_scan_weights_give_the_posterior():
     assert np.all(free[((v[:, :2]) / 0.1).astype(int)[:, 0], ((v[:, :2]) / 0.1).astype(int)[:, 1]])
 
 
+@pytest.mark.slow  # > 4 s: runs in make test-slow / CI
 def test_init_from_scan_is_deterministic_and_checks_inputs():
     free = np.ones(SPEC.shape, bool)
     lat = pose_lattice(SPEC, free, position_step_m=0.5, n_headings=4)

@@ -157,6 +157,7 @@ class LinearTranslation3(eqx.Module):
         return particles.translation() @ self.a
 
 
+@pytest.mark.slow  # > 4 s: runs in make test-slow / CI
 def test_linear_log_likelihood_gives_equal_weights_se3(key):
     """The same exactness in SE(3): a log-likelihood linear in the world translation is
     linear in xi's translation part (gradient R^T a), flat in its rotation part."""
@@ -312,6 +313,7 @@ class Hostile(eqx.Module):
 
 
 @pytest.mark.parametrize("autodiff", ["forward", "reverse"])
+@pytest.mark.slow  # > 4 s: runs in make test-slow / CI
 def test_zero_std_and_non_finite_surrogate(key, autodiff):
     chi = np.array([0.25, 0.0, 0.0])
     # world (x, y) at xi = chi: (-0.75, 0) -inf; (1.25, 1.5) NaN; (0.5, 0) inf gradient;
@@ -681,6 +683,7 @@ def test_curvature_hessian_and_shift_vs_finite_differences():
         np.testing.assert_allclose(shift[i], ref, rtol=1e-5, atol=1e-8)
 
 
+@pytest.mark.slow  # > 4 s: runs in make test-slow / CI
 def test_curvature_non_finite_surrogate_is_not_moved(key):
     class Bad(eqx.Module):
         def __call__(self, particles, z):

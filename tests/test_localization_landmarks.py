@@ -129,6 +129,7 @@ def test_pad_poles_keeps_best():
     np.testing.assert_allclose(xy[0], p.xy[[1, 3, 2]])
 
 
+@pytest.mark.slow  # > 4 s: runs in make test-slow / CI
 def test_landmark_particle_filter_tracks_synthetic_drive():
     """Landmarks along a road, noisy online detections, drifting odometry: the filter
     converges from a 2.5 m / 5 deg start and tracks to within 0.2 m."""

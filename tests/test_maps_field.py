@@ -93,6 +93,7 @@ def random_rays(rng, n, lo, hi, *, r_min=0.1, r_max=2.5, max_range=3.0, sup_rang
 
 @pytest.mark.parametrize("outside_rate", [0.0, 0.7])
 @pytest.mark.parametrize("r_max", [2.5, np.inf])
+@pytest.mark.slow  # > 4 s: runs in make test-slow / CI
 def test_generic_model_equals_grid_decay_rate_model(outside_rate, r_max):
     rng = np.random.default_rng(0)
     rays = random_rays(rng, 300, -0.5, 4.5)
@@ -111,6 +112,7 @@ def test_generic_model_equals_grid_decay_rate_model(outside_rate, r_max):
         assert np.all(a[np.asarray(rays.kind) == SUP] == -np.inf)
 
 
+@pytest.mark.slow  # > 4 s: runs in make test-slow / CI
 def test_generic_model_equals_dct_model():
     rng = np.random.default_rng(1)
     rays = random_rays(rng, 300, 0.2, 3.8)
@@ -397,6 +399,7 @@ def _scan_world():
 
 
 @pytest.mark.parametrize("which", ["user", "dct", "grid"])
+@pytest.mark.slow  # > 4 s: runs in make test-slow / CI
 def test_pose_gradients_through_any_field(which):
     truth, pose, az, ranges = _scan_world()
     if which == "user":

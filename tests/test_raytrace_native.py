@@ -139,6 +139,7 @@ print(int(a.hits.sum()), int(a.misses.sum()), d_h, d_m, rel, cells, body)
 
 
 @native
+@pytest.mark.slow  # > 4 s: runs in make test-slow / CI
 def test_float32_kernels_match_jax_float32():
     """float32 (x64 disabled, in a subprocess): the float32 kernels give the JAX float32
     path's counts except where an ulp decides a boundary tie, and lengths to round-off."""
@@ -206,6 +207,7 @@ np.savez(sys.argv[1], **{k: np.asarray(v) for k, v in out.items()})
 @native
 @pytest.mark.skipif(_native.isa() != "avx2", reason="the AVX2 library is not in use here")
 @pytest.mark.parametrize("dtype", ["f32", "f64"])
+@pytest.mark.slow  # > 4 s: runs in make test-slow / CI
 def test_avx2_and_baseline_libraries_agree(tmp_path, dtype):
     """The AVX2 build (8 float / 4 double ray lanes) and the baseline build (4 / 2 lanes),
     in subprocesses: per-ray folds bit-identical, hit/miss counts identical, per-cell
@@ -310,6 +312,7 @@ def test_fold_every_term_matches_jax(dim):
     [(2, LIMITS[0]), (2, LIMITS[1]), (2, LIMITS[2]), (3, LIMITS[0]), (3, LIMITS[1])],
     ids=["2d-finite", "2d-rmin0_rmaxinf", "2d-short_rmax", "3d-finite", "3d-rmin0_rmaxinf"],
 )
+@pytest.mark.slow  # > 4 s: runs in make test-slow / CI
 def test_every_grid_model_native_matches_jax(dim, limits):
     spec, o, d, r = _geometry(dim, n_random=60)
     rays = _all_kinds(o, d, r, *limits)
@@ -361,6 +364,7 @@ def test_native_inside_jit_vmap_and_scan():
 
 
 @native
+@pytest.mark.slow  # > 4 s: runs in make test-slow / CI
 def test_scan_model_native_in_particle_filter_step():
     """The particle filter's measurement model gives the same weights on both paths."""
     from lidarjax.localization import ScanModel

@@ -166,6 +166,7 @@ def intel_map():
     return log, maps.decay_rate_map(stats)
 
 
+@pytest.mark.slow  # > 4 s: runs in make test-slow / CI
 def test_refinement_converges_on_real_scans(intel_map):
     """From 0.3 m / 5 deg offsets, odd (unmapped) Intel scans refine to the optimum that
     refinement started at the corrected pose finds (within 1 cm / 0.25 deg). That optimum

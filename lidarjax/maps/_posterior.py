@@ -35,7 +35,7 @@ from jax.scipy.special import betainc
 from jaxtyping import Array, ArrayLike, Float
 
 from .._math import log1mexp
-from ..rays import HIT, SUB, SUP, RayBatch, _reject, is_concrete
+from ..rays import HIT, SUB, SUP, RayBatch, _reject, check_finite_nonnegative, is_concrete
 from ..raytrace import (
     CellTerm,
     GridSpec,
@@ -87,24 +87,14 @@ def _check_stats(stats) -> GridStats:
     return stats
 
 
-def _nonneg_finite(xp, a):
-    return ~xp.isfinite(a) | (a < 0)
-
-
 def _checked_counts(stats: GridStats, fields: tuple[str, ...]) -> dict[str, Array]:
     """``stats`` fields as float arrays checked to be finite and ``>= 0`` (``ValueError``
     naming the field when concrete, ``eqx.error_if`` when traced)."""
     dtype = jnp.result_type(float)
-    out = {}
-    for name in fields:
-        x = _reject(
-            getattr(stats, name),
-            _nonneg_finite,
-            f"stats.{name} must be finite and >= 0 (an infinite or NaN count or length "
-            "gives no posterior)",
-        )
-        out[name] = jnp.asarray(x, dtype)
-    return out
+    return {
+        name: check_finite_nonnegative(getattr(stats, name), f"stats.{name}").astype(dtype)
+        for name in fields
+    }
 
 
 def _check_map_fields(m, fields: tuple[str, ...], beta_zero_ok: bool) -> None:
@@ -112,17 +102,14 @@ def _check_map_fields(m, fields: tuple[str, ...], beta_zero_ok: bool) -> None:
     field); traced fields are checked at run time by :func:`term`."""
     for name in fields:
         if is_concrete(getattr(m, name)):
-            _reject(getattr(m, name), _nonneg_finite, f"{name} must be finite and >= 0")
+            check_finite_nonnegative(getattr(m, name), name)
     if is_concrete(m.alpha):
         _reject(m.alpha, lambda xp, a: ~(xp.isfinite(a) & (a > 0)), "alpha must be finite and > 0")
     if is_concrete(m.beta):
-        bound = ">= 0" if beta_zero_ok else "> 0"
         _reject(
             m.beta,
-            (lambda xp, b: ~(xp.isfinite(b) & (b >= 0)))
-            if beta_zero_ok
-            else (lambda xp, b: ~(xp.isfinite(b) & (b > 0))),
-            f"beta must be finite and {bound}",
+            lambda xp, b: ~(xp.isfinite(b) & ((b > 0) | (beta_zero_ok & (b == 0)))),
+            f"beta must be finite and {'>= 0' if beta_zero_ok else '> 0'}",
         )
 
 

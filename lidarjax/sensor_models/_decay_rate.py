@@ -7,7 +7,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from ..maps._grid import DecayRateMap, grid_optical_depth, rate_term
-from ..rays import HIT, SUB, RayBatch, is_concrete
+from ..rays import HIT, SUB, RayBatch, check_finite_nonnegative, is_concrete
 from ..raytrace import RayFold
 from ._common import (
     check_model_inputs,
@@ -26,12 +26,11 @@ def _checked(m: DecayRateMap) -> DecayRateMap:
     ``inf * 0 = NaN`` pose gradients (and ``-inf`` values) instead of an error."""
     if is_concrete(m.rates) and is_concrete(m.outside_rate):
         return m
-    bad = jnp.any(~jnp.isfinite(m.rates) | (m.rates < 0))
-    bad = bad | ~jnp.isfinite(m.outside_rate) | (m.outside_rate < 0)
-    rates = eqx.error_if(
-        m.rates, bad, "DecayRateMap: rates and outside_rate (1/m) must be finite and >= 0"
+    checked = (
+        check_finite_nonnegative(m.rates, "DecayRateMap.rates (1/m)"),
+        check_finite_nonnegative(m.outside_rate, "DecayRateMap.outside_rate (1/m)"),
     )
-    return eqx.tree_at(lambda t: t.rates, m, rates)
+    return eqx.tree_at(lambda t: (t.rates, t.outside_rate), m, checked)
 
 
 def term(m: DecayRateMap):

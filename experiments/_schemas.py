@@ -802,8 +802,79 @@ class PpeGrid:
 
 
 @dataclass
+class PpeDefault:
+    d: float = _f(positive)  # m
+    min_points: int = _f(ge(4))
+
+
+@dataclass
 class Ppe:
     grid: PpeGrid = _node(PpeGrid)
+    default: PpeDefault = _node(PpeDefault)  # the "PPE (default rule)" row: max_increment="auto"
+
+
+PLANE_PARTS = ("table", "noise")
+"""Parts of ``experiments/planes.py`` (``parts``)."""
+
+PLANE_SPLIT_SIZES = {"train": 10, "test": 30}
+"""Scans in the generated SynPEB-style splits (``lidarjax.datasets.synpeb_split``)."""
+
+
+@dataclass
+class NoiseTable:
+    split: str = _f(one_of(*PLANE_SPLIT_SIZES))
+    n_scans: int = _f(count)
+    shape: list[int] = _f(length(2), each=count)
+    noise_levels_mm: list[float] = _f(each=nonnegative)  # radial sigma (mm)
+    angular_sigma_mdeg: float = _f(nonnegative)
+    extra_conditions: list[Any] = MISSING  # [radial mm, angular mdeg] pairs, checked below
+    ppe_rows: list[Any] = MISSING  # {name, d, min_points, e | kappa}, checked below
+    baselines: bool = MISSING
+
+
+def _check_noise_table(problems, nt) -> None:
+    """Cross-key checks of ``noise_table`` (pairs, PPE rows, scan counts)."""
+    key = "noise_table"
+    limit = PLANE_SPLIT_SIZES.get(nt.split)
+    if limit is not None and nt.n_scans > limit:
+        problems.append(
+            (f"{key}.n_scans", nt.n_scans, f"the {nt.split!r} split has only {limit} scans")
+        )
+    extra = _plain(nt.extra_conditions)
+    for i, pair in enumerate(extra):
+        if not isinstance(pair, list) or len(pair) != 2 or any(ge(0)(x) for x in pair):
+            problems.append(
+                (f"{key}.extra_conditions[{i}]", pair, "must be [radial mm, angular mdeg] >= 0")
+            )
+    if not list(nt.noise_levels_mm) and not extra:
+        problems.append(
+            (f"{key}.noise_levels_mm", [], "needs a level (or noise_table.extra_conditions)")
+        )
+    rows = _plain(nt.ppe_rows)
+    names = []
+    for i, row in enumerate(rows):
+        k = f"{key}.ppe_rows[{i}]"
+        if not isinstance(row, dict):
+            problems.append((k, row, "must be a mapping {name, d, min_points, e | kappa}"))
+            continue
+        names.append(row.get("name"))
+        want = {"name", "d", "min_points"}
+        thr = [t for t in ("e", "kappa") if t in row]
+        if not want <= set(row) or len(thr) != 1 or set(row) - want - {"e", "kappa"}:
+            problems.append((k, row, "needs exactly name, d, min_points and one of e, kappa"))
+            continue
+        if not isinstance(row["name"], str) or not row["name"]:
+            problems.append((f"{k}.name", row["name"], "must be a non-empty string"))
+        for sub, check in (("d", positive), ("min_points", ge(4))):
+            why = check(row[sub])
+            if why:
+                problems.append((f"{k}.{sub}", row[sub], why))
+        if "kappa" in row and positive(row["kappa"]):
+            problems.append((f"{k}.kappa", row["kappa"], positive(row["kappa"])))
+        if "e" in row and row["e"] != "auto" and nonnegative(row["e"]):
+            problems.append((f"{k}.e", row["e"], "must be 'auto' or a number >= 0 (m²)"))
+    if unique(names):
+        problems.append((f"{key}.ppe_rows", names, "names " + unique(names)))
 
 
 @dataclass
@@ -818,19 +889,30 @@ class PlanesConfig:
 
     x64: bool = MISSING
     workers: int = _f(count)
+    parts: list[str] = MISSING
+    extra_scans: list[str] = MISSING  # PCD files; checked to exist before any work
+    synpeb_min_plane_label: int = _f(count)
     shape: list[int] = _f(length(2), each=count)
     n_train: int = _f(nonnegative)
     n_test: int = _f(count)
     methods: list[str] = MISSING
     tuned: dict[str, Any] | None = MISSING
     ppe: Ppe = _node(Ppe)
+    noise_table: NoiseTable = _node(NoiseTable)
     msac: Baseline = _node(Baseline)
     peac: Baseline = _node(Baseline)
 
     @staticmethod
     def check(cfg, problems) -> None:
+        from pathlib import Path
+
         from lidarjax.features import msac_planes, peac_planes
 
+        _check_names(problems, "parts", cfg.parts, PLANE_PARTS)
+        for i, path in enumerate(cfg.extra_scans):
+            if not Path(str(path)).expanduser().is_file():
+                problems.append((f"extra_scans[{i}]", path, "no such file (a SynPEB PCD scan)"))
+        _check_noise_table(problems, cfg.noise_table)
         _check_names(problems, "methods", cfg.methods, PLANE_METHODS)
         for name, fn in (("msac", msac_planes), ("peac", peac_planes)):
             kw = [p for p in inspect.signature(fn).parameters if p != "points"]
@@ -864,7 +946,7 @@ class PlanesConfig:
                 problems.append((f"tuned.{m}", p, "must be a mapping of parameters"))
             elif allowed[m] is not None and set(p) != allowed[m]:
                 problems.append((f"tuned.{m}", p, f"needs exactly the keys {sorted(allowed[m])}"))
-        if cfg.n_train < 1 and any(m not in tuned for m in cfg.methods):
+        if "table" in cfg.parts and cfg.n_train < 1 and any(m not in tuned for m in cfg.methods):
             problems.append(("n_train", cfg.n_train, "the grid search needs >= 1 training scan"))
 
 
@@ -910,7 +992,8 @@ class PoleExtractor:
     q_min: float = _f(probability)
     h_min_m: float = _f(positive)
     free_m: float = _f(positive)
-    widths: list[int] = _f(nonempty, unique, each=count)
+    max_width_m: float = _f(positive)  # candidate widths: 1 cell .. max_width_m
+    widths: list[int] | None = _f(nonempty, unique, each=count)  # null: from max_width_m
 
 
 @dataclass
@@ -941,7 +1024,11 @@ class KittiProtocol:
     enabled: bool = MISSING
     start: int = _f(nonnegative)
     n_scans: int = _f(ge(2))
-    resolution_m: float = _f(positive)
+    resolutions_m: list[float] = _f(nonempty, unique, each=positive)
+    lidar: str = _f(one_of("hdl64e", "hdl32e"))
+    odometry: str = _f(one_of("relative", "wheel"))
+    rel_sigma: float = _f(nonnegative)
+    inflation: float = _f(positive)
     n_particles: int = _f(count)
     runs: int = _f(count)
     radius_m: float = _f(nonnegative)
@@ -962,9 +1049,12 @@ class PolesConfig:
     localization: PoleLocalization = _node(PoleLocalization)
     kitti_protocol: KittiProtocol = _node(KittiProtocol)
     figure_session: int = _f(nonnegative)
+    only: str | None = _f(one_of("table_12_1", "kitti_protocol"))  # null: both parts
 
     @staticmethod
     def check(cfg, problems) -> None:
+        if cfg.only == "kitti_protocol" and not cfg.kitti_protocol.enabled:
+            problems.append(("only", cfg.only, "needs kitti_protocol.enabled = true"))
         r = cfg.route
         if r.stop is not None and r.stop - r.start < 10:
             problems.append(("route.stop", r.stop, f"must be >= route.start + 10 ({r.start + 10})"))

@@ -2,16 +2,21 @@
 against a from-scratch reference."""
 
 import itertools
+import math
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 import scipy.optimize
+import scipy.stats
 
 from lidarjax.datasets import fetch, read_pcd
 from lidarjax.features import (
+    AUTO_FLOOR_M2,
+    AUTO_KAPPA,
     TETROMINOES,
+    auto_max_increment,
     estimate_noise,
     extract_planes,
     extract_planes_path,
@@ -266,7 +271,7 @@ def test_linearized_error_tracks_the_exact_ray_path_error():
     [
         ((0, 0), dict(max_increment=5e-3)),
         ((40, 50), dict(max_increment=2e-3, max_distance_m=0.05)),
-        ((80, 20), dict(max_planes=5)),
+        ((80, 20), dict(max_planes=5, max_increment=None)),
         ((60, 0), dict(max_increment=1e-2)),
     ],
 )
@@ -306,7 +311,7 @@ def test_increments_are_brute_force_error_differences(synpeb_crop):
     sub = (
         sub * (1.0 + np.random.default_rng(5).normal(0.0, 0.005, sub.shape[:2]))[..., None]
     )  # ~20 mm
-    full = extract_planes(sub, refit=False)
+    full = extract_planes(sub, max_increment=math.inf, refit=False)
     assert full.stop_reason == "exhausted"
     K = sub.shape[0] * sub.shape[1]
     total = np.cumsum(full.step_costs)
@@ -317,7 +322,7 @@ def test_increments_are_brute_force_error_differences(synpeb_crop):
         js.append(J)
     checked = 0
     for step in (10, 40, 90, len(js) // 2, len(js) - 1):
-        seg = extract_planes(sub, max_planes=js[step], refit=False)
+        seg = extract_planes(sub, max_increment=None, max_planes=js[step], refit=False)
         assert len(seg.step_costs) == step + 1
         brute = sum(linearized_plane_error(sub[seg.labels == j]) for j in range(seg.n_planes))
         np.testing.assert_allclose(brute, total[step], rtol=1e-8, atol=1e-10)
@@ -349,8 +354,8 @@ def test_ppe_separates_wall_and_floor_and_refits_exactly():
 def test_outlier_filter_blocks_depth_jumps():
     pts, _ = _scene_scan(h=10, w=12, az=(-0.2, 0.2), el=(0.1, -0.1))  # wall only, 0.11 m spacing
     pts[:, 6:] *= 1.5  # right half: same directions, 50 % farther (1.5 m jump)
-    joined = extract_planes(pts, max_increment=None, refit=False)
-    split = extract_planes(pts, max_increment=None, max_distance_m=0.5, refit=False)
+    joined = extract_planes(pts, max_increment=math.inf, refit=False)
+    split = extract_planes(pts, max_increment=math.inf, max_distance_m=0.5, refit=False)
 
     def shared(labels):
         return set(labels[:, :6].ravel()) & set(labels[:, 6:].ravel()) - {-1}
@@ -362,7 +367,7 @@ def test_outlier_filter_blocks_depth_jumps():
 
 def test_max_planes_and_max_increment_stop():
     pts, _ = _scene_scan(h=10, w=12, sigma=0.02, seed=1)
-    seg = extract_planes(pts, max_planes=30, refit=False)
+    seg = extract_planes(pts, max_increment=None, max_planes=30, refit=False)
     assert seg.stop_reason == "max_planes"
     J = seg.n_planes + seg.n_atoms
     assert 27 < J <= 30
@@ -444,3 +449,101 @@ def test_fit_one_scan_column_is_finite():
     fit = _fit(np.zeros((14, 3)), d, r)
     assert np.isfinite(float(fit.error)) and float(fit.error) <= np.sum((r - 3.0 / d[:, 0]) ** 2)
     assert abs(float(fit.support @ fit.normal)) > 1.0  # not through the sensor
+
+
+# ---------------------------------------------------------------------------------------
+# Stopping criteria: no silent collapse, the default threshold rule (issue #20)
+# ---------------------------------------------------------------------------------------
+
+
+def test_no_stopping_criterion_raises():
+    """Without e and J_max the greedy loop would merge every connected ray into one plane
+    (stop_reason 'exhausted'); that must be an error naming both arguments."""
+    pts, _ = _scene_scan(h=8, w=10, sigma=0.02, seed=3)
+    for fn in (extract_planes, extract_planes_reference):
+        with pytest.raises(ValueError, match="max_increment=None and max_planes=None"):
+            fn(pts, max_increment=None)
+        with pytest.raises(ValueError, match="max_increment"):
+            fn(pts, max_increment="automatic")
+    with pytest.raises(ValueError, match="max_increments"):
+        extract_planes_path(pts, [1e-3, None])
+    with pytest.raises(ValueError, match="max_increments"):
+        extract_planes_path(pts, "auto")
+    # an explicit "no threshold" still runs to the end, and J_max alone is a criterion
+    assert extract_planes(pts, max_increment=math.inf, refit=False).stop_reason == "exhausted"
+    seg = extract_planes(pts, max_increment=None, max_planes=20, refit=False)
+    assert seg.stop_reason == "max_planes"
+
+
+def _brute_force_sigma(pts):
+    """sigma_hat from scratch: every 4-ray placement of the 17 tetrominoes, each fitted by
+    least squares (linearized_plane_error), median / median of chi²(1)."""
+    H, W = pts.shape[:2]
+    errs = []
+    for shape in TETROMINOES:
+        for r in range(H - shape[:, 0].max()):
+            for c in range(W - shape[:, 1].max()):
+                errs.append(linearized_plane_error(pts[r + shape[:, 0], c + shape[:, 1]]))
+    return np.sqrt(np.median(errs) / scipy.stats.chi2(1).median())
+
+
+@pytest.mark.parametrize("sigma, branch", [(0.02, "kappa"), (0.0005, "floor")])
+def test_auto_threshold_is_the_documented_rule(sigma, branch):
+    """e = max(200 sigma_hat², 0.01 m²) with sigma_hat recomputed by brute force, and
+    extract_planes(points) uses it."""
+    pts, _ = _scene_scan(h=12, w=14, sigma=sigma, seed=8)
+    sig = _brute_force_sigma(pts)
+    expected = max(200.0 * sig**2, 0.01)
+    assert (AUTO_KAPPA, AUTO_FLOOR_M2) == (200.0, 0.01)
+    assert ("kappa" if 200.0 * sig**2 > 0.01 else "floor") == branch
+    np.testing.assert_allclose(auto_max_increment(pts), expected, rtol=1e-9)
+    auto = extract_planes(pts, refit=False)
+    same = extract_planes(pts, max_increment=expected, refit=False)
+    np.testing.assert_array_equal(auto.labels, same.labels)
+    np.testing.assert_array_equal(auto.step_costs, same.step_costs)
+    assert auto.stop_reason == "max_increment" and auto.step_costs.max() <= expected
+    ref = extract_planes_reference(pts)
+    np.testing.assert_array_equal(ref.labels, auto.labels)
+    path = extract_planes_path(pts, ["auto", 1e-4], refit=False)
+    np.testing.assert_array_equal(path[0].labels, auto.labels)
+
+
+def _synpeb_window(radial_sigma_m, angular_sigma_deg=1e-3, n=64):
+    """A 64 x 64 window of a generated SynPEB-style scan at the full 500 x 500 angular
+    resolution (0.14° x 0.12°): floor, a wall and four object faces of training scene 0."""
+    from lidarjax.datasets import make_synpeb_scene, simulate_synpeb_scan
+
+    return simulate_synpeb_scan(
+        make_synpeb_scene(seed=1000),
+        shape=(n, n),
+        radial_sigma_m=radial_sigma_m,
+        angular_sigma_deg=angular_sigma_deg,
+        seed=1007,
+        azimuth_deg=(18.2, 18.2 + (n - 1) * 0.14),
+        elevation_deg=(-15.7, -15.7 - (n - 1) * 60.0 / 499),
+    )
+
+
+def test_default_rule_neither_collapses_nor_over_segments():
+    """Issue #20: at 0.4 mm radial noise 200 sigma_hat² (the old default) cuts planes into
+    spurious pieces; the default rule gives the ground-truth planes at 0.4 mm and 20 mm."""
+    from lidarjax.metrics import hoover_scores
+
+    for radial, min_f in ((0.0004, 0.85), (0.02, 0.5)):
+        scan = _synpeb_window(radial)
+        seg = extract_planes(scan.points, max_distance_m=0.2, refit=False)
+        h = hoover_scores(scan.labels, seg.labels)
+        n_big = int((np.bincount(scan.labels.ravel())[1:] >= 50).sum())
+        assert seg.stop_reason == "max_increment"  # no collapse into one plane
+        assert n_big >= 5 and seg.n_planes >= n_big - 1, (radial, seg.n_planes, n_big)
+        assert h.n_noise <= 2 and h.n_over == 0 and h.n_under == 0, (radial, h)
+        assert h.f >= min_f and h.k >= 0.9, (radial, h.f, h.k)
+        if radial < 1e-3:  # the old relative rule over-segments the same scan
+            old = extract_planes(
+                scan.points,
+                max_increment=200 * estimate_noise(scan.points) ** 2,
+                max_distance_m=0.2,
+                refit=False,
+            )
+            assert old.n_planes >= seg.n_planes + 5
+            assert hoover_scores(scan.labels, old.labels).n_noise >= h.n_noise + 5

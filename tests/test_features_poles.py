@@ -138,8 +138,13 @@ def cast_cylinders(origin, dirs, poles_xyr, height, r_max):
     return np.where(r < r_max, r, r_max)
 
 
-def synthetic_rays(poles_xyr, sensors, n_az=720, height=4.0, r_max=40.0):
-    el = np.deg2rad(np.linspace(-30.67, 10.67, 32))
+# ring elevations (deg): HDL-32E (1.33 deg apart) and HDL-64E (KITTI; 1/3 and 1/2 deg apart)
+RINGS_32 = np.linspace(-30.67, 10.67, 32)
+RINGS_64 = np.concatenate([np.linspace(2.0, -8.33, 32), np.linspace(-8.83, -24.33, 32)])
+
+
+def synthetic_rays(poles_xyr, sensors, n_az=720, height=4.0, r_max=40.0, rings_deg=RINGS_32):
+    el = np.deg2rad(np.asarray(rings_deg, float))
     az = np.linspace(-np.pi, np.pi, n_az, endpoint=False)
     E, A = np.meshgrid(el, az, indexing="ij")
     d = np.stack([np.cos(E) * np.cos(A), np.cos(E) * np.sin(A), np.sin(E)], -1).reshape(-1, 3)
@@ -216,6 +221,172 @@ def test_short_stacks_and_walls_are_not_poles():
     assert 0.5 <= poles.width_m[thick] <= 0.8
     np.testing.assert_allclose(poles.z_range_m[thin], [0.4, 2.0], atol=1e-9)
     np.testing.assert_allclose(poles.z_range_m[thick], [0.2, 2.4], atol=1e-9)
+
+
+def test_candidate_widths_are_physical_sizes():
+    """Widths 1 cell .. max_width_m at every resolution (also after ``replace`` and when a
+    grid's resolution overrides the config's); explicit cell counts stay as given."""
+    from dataclasses import replace
+
+    c = PoleConfig()  # 0.2 m voxels, max_width_m = 1.0
+    assert c.width_cells == (1, 2, 3, 4, 5) and c.widths == (1, 2, 3, 4, 5)
+    fine = replace(c, resolution_m=0.1)
+    assert fine.width_cells == tuple(range(1, 11))  # 0.1 .. 1.0 m
+    assert replace(fine, resolution_m=0.25).width_cells == (1, 2, 3, 4)
+    assert PoleConfig(resolution_m=0.1, max_width_m=0.6).width_cells == (1, 2, 3, 4, 5, 6)
+    assert PoleConfig(resolution_m=0.5, max_width_m=0.2).width_cells == (1,)  # at least 1
+    for res in (0.05, 0.1, 0.2, 0.3):  # the largest width is max_width_m to half a cell
+        a_max = PoleConfig(resolution_m=res).width_cells[-1]
+        assert abs(a_max * res - 1.0) <= 0.5 * res + 1e-12
+    explicit = PoleConfig(widths=(1, 3))
+    assert replace(explicit, resolution_m=0.1).width_cells == (1, 3)
+    for kwargs, name in (
+        (dict(max_width_m=0.0), "max_width_m"),
+        (dict(max_width_m=float("inf")), "max_width_m"),
+        (dict(max_width_m="1"), "max_width_m"),
+        (dict(widths=()), "widths"),
+        (dict(widths=(2, 2)), "widths"),
+        (dict(widths=(1.5,)), "widths"),
+        (dict(widths=(True,)), "widths"),
+    ):
+        with pytest.raises(ValueError, match=name):
+            PoleConfig(**kwargs)
+
+
+def hollow_trunk_occupancy(res: float, diameter: float, shape_m=(6.0, 6.0, 2.0)):
+    """Occupancy of a trunk seen from all sides: the cells its surface passes through are
+    occupied (0.99); the unobserved interior and the free space around are 0.01."""
+    n = tuple(int(round(e / res)) for e in shape_m)
+    centre = np.array([3.03, 2.97])
+    xs = (np.arange(n[0]) + 0.5) * res
+    ys = (np.arange(n[1]) + 0.5) * res
+    d = np.hypot(xs[:, None] - centre[0], ys[None, :] - centre[1])
+    surface = np.abs(d - diameter / 2) <= 0.5 * res * math.sqrt(2)
+    occ = np.where(surface[:, :, None], 0.99, 0.01) * np.ones(n)
+    return occ, GridSpec(jnp.zeros(3), res, n), centre
+
+
+@pytest.mark.slow  # > 4 s: runs in make test-slow / CI
+def test_wide_trunk_found_at_fine_and_coarse_voxels():
+    """Regression (issue #20): the candidate widths were 1-5 cells at every resolution, so
+    at 0.1 m no square wider than 0.5 m existed; the free hull of every candidate square
+    then cut through a 0.6 m trunk and it was never a pole. Widths in metres find trunks
+    of 0.3 m and 0.6 m at 0.1 m and 0.2 m, at their centres."""
+    for diameter in (0.3, 0.6):
+        for res in (0.1, 0.2):
+            occ, spec, centre = hollow_trunk_occupancy(res, diameter)
+            cfg = PoleConfig(resolution_m=res, extent_m=(6.0, 6.0, 2.0), max_poles=8)
+            poles = extract_poles_from_occupancy(jnp.asarray(occ), spec, cfg)
+            assert len(poles) == 1, (diameter, res, len(poles))
+            # the occupancy is symmetric about the trunk up to the raster: within a cell
+            assert np.linalg.norm(poles.xy[0] - centre) < res, (diameter, res, poles.xy)
+            # the whole stack qualifies (2 m >= h_min)
+            np.testing.assert_allclose(poles.z_range_m[0], [0.0, 2.0], atol=1e-9)
+            # a square of edge ~ the diameter or more, never beyond max_width_m
+            assert diameter - res <= poles.width_m[0] <= cfg.max_width_m + 1e-9
+        # the old candidate set at 0.1 m: only the trunk whose surface fits in 5 cells
+        occ, spec, _ = hollow_trunk_occupancy(0.1, diameter)
+        old = PoleConfig(
+            resolution_m=0.1, extent_m=(6.0, 6.0, 2.0), max_poles=8, widths=(1, 2, 3, 4, 5)
+        )
+        n_old = len(extract_poles_from_occupancy(jnp.asarray(occ), spec, old))
+        assert n_old == (1 if diameter < 0.4 else 0), (diameter, n_old)
+
+
+@pytest.mark.slow  # > 4 s: runs in make test-slow / CI
+def test_trunk_from_rays_at_fine_and_coarse_voxels():
+    """Ray-traced trunks of 0.3-0.6 m (the simulator's range): a trunk circled by the
+    sensor at 5 m is found at 0.1 m and 0.2 m voxels; with the old 1-5 cell widths the
+    0.6 m one was missed at 0.1 m."""
+    truth = np.array([[0.03, 0.07, 0.3], [3.0, 2.9, 0.15]])  # 0.6 m and 0.3 m
+    sensors = [(5.0, 0.0, 1.73), (0.0, 5.0, 1.73), (-5.0, 0.0, 1.73), (0.0, -5.0, 1.73)]
+    rays = synthetic_rays(truth, sensors, rings_deg=RINGS_64, r_max=30.0)
+    for res in (0.1, 0.2):
+        cfg = PoleConfig(resolution_m=res, extent_m=(10.0, 10.0, 3.0), max_poles=16)
+        poles = extract_poles(rays, local_map_spec([1.0, 1.0], cfg), cfg)
+        d = np.linalg.norm(poles.xy[:, None] - truth[None, :, :2], axis=-1)
+        assert len(poles) == 2 and np.all(d.min(0) < 0.1), (res, poles.xy)
+    old = PoleConfig(
+        resolution_m=0.1, extent_m=(10.0, 10.0, 3.0), max_poles=16, widths=(1, 2, 3, 4, 5)
+    )
+    poles = extract_poles(rays, local_map_spec([1.0, 1.0], old), old)
+    d = np.linalg.norm(poles.xy[:, None] - truth[None, :, :2], axis=-1)
+    assert len(poles) == 1 and d[0, 1] < 0.1  # only the 0.3 m trunk
+
+
+@pytest.mark.slow  # > 4 s: runs in make test-slow / CI
+def test_ring_spacing_limits_the_voxel_size():
+    """Why the Table 12.2 analogue missed 12 of 14 trunks at 0.1 m (issue #20): a 32-ring
+    lidar (1.33 deg apart) hits a trunk 8 m away every 0.19 m in height, so every second
+    0.1 m layer is unobserved (score 0.5 < q_min) and no run reaches h_min = 1 m. The same
+    trunk is found at 0.2 m, and at 0.1 m by KITTI's 64-ring sensor (0.05 m apart)."""
+    truth = np.array([[0.23, 8.07, 0.2]])
+    sensors = [(x, 0.0, 1.73) for x in (-1.0, -0.3, 0.4, 1.1)]  # one 1.5 m segment
+    for rings, res, found in (
+        (RINGS_32, 0.2, True), (RINGS_32, 0.1, False), (RINGS_64, 0.1, True), (RINGS_64, 0.2, True)
+    ):  # fmt: skip
+        rays = synthetic_rays(truth, sensors, rings_deg=rings, r_max=30.0)
+        cfg = PoleConfig(resolution_m=res, extent_m=(6.0, 6.0, 3.0), max_poles=8)
+        spec = local_map_spec([0.0, 6.0], cfg)
+        poles, occ = extract_poles(rays, spec, cfg, return_occupancy=True)
+        hit = [np.linalg.norm(p - truth[0, :2]) < 0.25 for p in poles.xy]
+        assert any(hit) == found, (len(rings), res, poles.xy)
+        if not found:  # the cause: unobserved layers between the rings break the run
+            q = np.asarray(pole_score_maps(occ, cfg.width_cells, cfg.free_cells)).max(0)
+            c = np.floor((truth[0, :2] - np.asarray(spec.origin)[:2]) / res).astype(int)
+            on = q[c[0] - 3 : c[0] + 4, c[1] - 3 : c[1] + 4].max(axis=(0, 1)) >= cfg.q_min
+            runs = [len(r) for r in "".join("1" if v else "0" for v in on).split("0")]
+            assert on.sum() >= 1.5 * cfg.min_cells  # the trunk scores on most layers ...
+            assert max(runs) < cfg.min_cells  # ... but no 1 m of them is contiguous
+
+
+def brute_seeds(s: np.ndarray, r: int) -> np.ndarray:
+    """Seeds by definition: S > 0, no higher cell within r (Chebyshev), and no equal cell
+    of lower flat index within r that is itself such a maximum."""
+    nx, ny = s.shape
+
+    def win(i, j):
+        return [
+            (a, b)
+            for a in range(max(0, i - r), min(nx, i + r + 1))
+            for b in range(max(0, j - r), min(ny, j + r + 1))
+        ]
+
+    peak = np.array(
+        [
+            [s[i, j] > 0 and all(s[i, j] >= s[c] for c in win(i, j)) for j in range(ny)]
+            for i in range(nx)
+        ]
+    )
+    out = np.zeros_like(peak)
+    for i, j in itertools.product(range(nx), range(ny)):
+        out[i, j] = peak[i, j] and not any(peak[c] and c < (i, j) for c in win(i, j))
+    return out
+
+
+def test_one_seed_per_plateau():
+    """Regression: every cell of a flat top of S was a seed, so one wide pole (a plateau of
+    ~a x a cells) could take all max_poles seeds and hide the other poles."""
+    from lidarjax.features._poles import _local_maxima
+
+    rng = np.random.default_rng(4)
+    s = np.round(rng.uniform(size=(17, 15)), 1) * (rng.uniform(size=(17, 15)) < 0.5)  # ties
+    s[2:6, 3:8] = 1.5  # a 4 x 5 plateau
+    s[12, 12] = 1.2  # a strict maximum
+    for r in (1, 2, 3):
+        seeds = np.asarray(_local_maxima(jnp.asarray(s), r))
+        np.testing.assert_array_equal(seeds, brute_seeds(s, r))
+    seeds = np.asarray(_local_maxima(jnp.asarray(s), 2))
+    assert seeds[2:6, 3:8].sum() == 1 and seeds[2, 3] and seeds[12, 12]
+    # end to end: a 3 x 3 pole (a plateau of S) and a thinner, weaker one; two seeds
+    spec = GridSpec(jnp.zeros(3), 0.2, (30, 30, 10))
+    occ = np.full(spec.shape, 0.01)
+    occ[8:11, 8:11, :] = 0.99
+    occ[20, 21, :] = 0.9
+    cfg = PoleConfig(extent_m=(6.0, 6.0, 2.0), max_poles=2)
+    poles = extract_poles_from_occupancy(jnp.asarray(occ), spec, cfg)
+    assert len(poles) == 2
+    np.testing.assert_allclose(np.sort(poles.xy[:, 0]), [1.9, 4.1], atol=0.1)
 
 
 def test_local_map_spec_snaps_to_raster():

@@ -177,6 +177,46 @@ def test_unlabelled_gt_points_are_ignored():
     np.testing.assert_array_equal(s2.noise, [0, 9])
 
 
+def test_min_gt_label_excludes_non_plane_labels():
+    """SynPEB files number their planes from 10 (the authors' evaluation counts labels
+    >= 10); a smaller label (the shared crop's 3) is not a plane and must not count."""
+    gt = _quadrants() + 10  # planes 11 .. 14
+    gt[0, :] = 3  # a non-plane class over the top row (3 rays each of planes 11 and 12)
+    pred = np.where(gt >= 10, gt - 11, -1)  # every plane found exactly, the class left out
+    by_default = hoover_scores(gt, pred)  # label 3 counts as a plane that is missed
+    assert (by_default.n_gt, by_default.n_missed, by_default.n_correct) == (5, 1, 4)
+    assert by_default.f == 4 / 5 and by_default.k == 30 / 36
+    s = hoover_scores(gt, pred, min_gt_label=10)
+    assert (s.n_gt, s.n_missed, s.n_correct) == (4, 0, 4)
+    assert s.f == 1.0 and s.k == 1.0
+    assert k_value(gt, pred, min_gt_label=10) == 1.0
+    # independent reference: the same as relabelling the non-plane class as unlabelled (0)
+    rng = np.random.default_rng(5)
+    gt_r = rng.choice([0, 3, 7, 10, 11, 12], size=(20, 20))
+    pred_r = rng.choice([-1, 0, 1, 2], size=(20, 20))
+    for t in (0.6, 0.8):
+        a = hoover_scores(gt_r, pred_r, threshold=t, min_gt_label=10)
+        b = hoover_scores(np.where(gt_r >= 10, gt_r, 0), pred_r, threshold=t)
+        assert _counts(a) == _counts(b) and (a.n_gt, a.n_pred) == (b.n_gt, b.n_pred) == (3, 3)
+        assert a.f == b.f and a.k == b.k
+    for bad in (0, -1, 2.5, True, "10"):
+        with pytest.raises(ValueError, match="min_gt_label"):
+            hoover_scores(gt, pred, min_gt_label=bad)
+
+
+def test_min_gt_label_on_the_shared_crop():
+    """The shared SynPEB crop has 13 labels, one of them (3, 20 rays) below 10."""
+    from lidarjax.datasets import fetch, load_synpeb_pcd
+
+    _, gt = load_synpeb_pcd(fetch("synpeb-test-100"))
+    labels = np.unique(gt[gt > 0])
+    assert labels.size == 13 and labels[labels < 10].tolist() == [3]
+    perfect = np.where(gt > 0, gt, -1)
+    assert hoover_scores(gt, perfect).n_gt == 13
+    s = hoover_scores(gt, perfect, min_gt_label=10)
+    assert s.n_gt == 12 and s.n_correct == 12 and s.n_pred == 12
+
+
 def test_label_permutation_invariance():
     rng = np.random.default_rng(3)
     for _ in range(10):

@@ -2,9 +2,12 @@
 heuristic baselines of section 10.5 (Visvalingam, iterative endpoint fit, split-and-merge),
 planes (PPE, ch. 11) with the MSAC and PEAC-style baselines, and poles (ch. 12)."""
 
+from ._plane import AUTO_FLOOR_M2 as AUTO_FLOOR_M2
+from ._plane import AUTO_KAPPA as AUTO_KAPPA
 from ._plane import TETROMINOES as TETROMINOES
 from ._plane import PlaneFit as PlaneFit
 from ._plane import PlaneSegmentation as PlaneSegmentation
+from ._plane import auto_max_increment as auto_max_increment
 from ._plane import default_plane_solver as default_plane_solver
 from ._plane import estimate_noise as estimate_noise
 from ._plane import extract_planes as extract_planes
@@ -73,6 +76,9 @@ __all__ = [
     "extract_planes_reference",
     "extract_planes_path",
     "estimate_noise",
+    "auto_max_increment",
+    "AUTO_KAPPA",
+    "AUTO_FLOOR_M2",
     "refit_segmentation",
     "msac_planes",
     "peac_planes",

@@ -8,7 +8,8 @@ The pipeline, every step a batched JAX computation over the voxel grid:
 2. **Occupancy** ``o_j = int_{mu_o}^1 p(mu_j | Z) dmu_j``
    (:func:`lidarjax.maps.occupancy`).
 3. **Pole score maps** ``Q_a`` for every pole width ``a`` (in cells,
-   :func:`pole_score_maps`)::
+   :func:`pole_score_maps`; the candidate widths are physical sizes, 1 cell up to
+   :attr:`PoleConfig.max_width_m`, so they cover the same poles at every resolution)::
 
        q_{a,j} = max_{k in inside(j,a)} ( mean_{l in inside(k,a)} o_l
                                           - max_{l in outside(k,a,f)} o_l )
@@ -65,6 +66,16 @@ __all__ = [
 ]
 
 
+class _DerivedWidths(tuple):
+    """Candidate widths (cells) that :class:`PoleConfig` derived from ``max_width_m``.
+
+    A plain tuple to every reader; the type only tells ``PoleConfig.__post_init__`` to
+    derive the widths again for the new resolution when a config is copied with
+    ``dataclasses.replace``."""
+
+    __slots__ = ()
+
+
 @dataclass(frozen=True)
 class PoleConfig:
     """Parameters of the pole extractor (defaults: the dissertation's NCLT settings).
@@ -74,7 +85,16 @@ class PoleConfig:
         extent_m: local-map size ``(x, y, z)`` (m); 30 x 30 x 5 in section 12.5.1.
         z_min_m: height of the local map's floor above the vehicle's ground point (m).
         mu_o: reflection-rate threshold of the occupancy integral.
-        widths: pole edge lengths ``a`` in cells.
+        max_width_m: largest candidate pole edge length (m). The candidate widths are
+            ``a = 1 .. round(max_width_m / resolution_m)`` cells (at least one), i.e. the
+            same physical sizes at every resolution: 0.2-1.0 m in 5 widths at 0.2 m,
+            0.1-1.0 m in 10 widths at 0.1 m (the authors' KITTI setting).
+        widths: explicit pole edge lengths ``a`` in cells, used at every resolution
+            instead of the widths derived from ``max_width_m``. Omitted (``None``), the
+            field holds the derived widths after construction (:attr:`width_cells`), and
+            they are derived again whenever the resolution changes (also through
+            ``dataclasses.replace`` and when a grid's resolution overrides
+            ``resolution_m``).
         free_m: thickness of the free hull around a pole (m); ``f`` = ``round(free_m /
             resolution_m)`` cells, at least 1.
         q_min: minimum score (``[0, 1]`` scale) of the cells of a pole's vertical run.
@@ -93,7 +113,8 @@ class PoleConfig:
     extent_m: tuple[float, float, float] = (30.0, 30.0, 5.0)
     z_min_m: float = 0.1
     mu_o: float = 0.2
-    widths: tuple[int, ...] = (1, 2, 3, 4, 5)
+    max_width_m: float = 1.0
+    widths: tuple[int, ...] | None = None
     free_m: float = 0.5
     q_min: float = 0.6
     h_min_m: float = 1.0
@@ -113,10 +134,36 @@ class PoleConfig:
             raise ValueError(f"extent_m must be three positive lengths, got {self.extent_m!r}")
         if not (0.0 <= self.mu_o <= 1.0):
             raise ValueError(f"mu_o must lie in [0, 1], got {self.mu_o!r}")
-        if not self.widths or any(int(a) != a or a < 1 for a in self.widths):
-            raise ValueError(f"widths must be positive ints, got {self.widths!r}")
-        if len(set(self.widths)) != len(self.widths):
-            raise ValueError(f"widths must be distinct, got {self.widths!r}")
+        mw = self.max_width_m
+        if (
+            isinstance(mw, bool)
+            or not isinstance(mw, (int, float))
+            or not (math.isfinite(mw) and mw > 0)
+        ):
+            raise ValueError(f"max_width_m must be finite and > 0, got {self.max_width_m!r}")
+        if self.widths is None or isinstance(self.widths, _DerivedWidths):
+            # derived from the physical size (again, after a change of resolution)
+            n = max(1, int(round(self.max_width_m / self.resolution_m)))
+            object.__setattr__(self, "widths", _DerivedWidths(range(1, n + 1)))
+        else:
+            w = self.widths
+            if (
+                isinstance(w, (str, bytes))
+                or not hasattr(w, "__len__")
+                or not w
+                or any(
+                    isinstance(a, bool)
+                    or not isinstance(a, (int, float, np.integer, np.floating))
+                    or not math.isfinite(a)
+                    or int(a) != a
+                    or a < 1
+                    for a in w
+                )
+            ):
+                raise ValueError(f"widths must be positive ints (cells) or None, got {w!r}")
+            if len(set(w)) != len(w):
+                raise ValueError(f"widths must be distinct, got {w!r}")
+            object.__setattr__(self, "widths", tuple(int(a) for a in w))
         if not (self.free_m > 0):
             raise ValueError(f"free_m must be > 0, got {self.free_m!r}")
         if not (0.0 <= self.q_min <= 1.0):
@@ -129,6 +176,11 @@ class PoleConfig:
             v = getattr(self, name)
             if not isinstance(v, int) or v < 1:
                 raise ValueError(f"{name} must be a positive int, got {v!r}")
+
+    @property
+    def width_cells(self) -> tuple[int, ...]:
+        """Candidate pole edge lengths ``a`` in cells (``widths``, explicit or derived)."""
+        return tuple(self.widths)
 
     @property
     def free_cells(self) -> int:
@@ -304,9 +356,18 @@ def pole_score_image(
 
 
 def _local_maxima(s: Array, radius: int) -> Bool[Array, "nx ny"]:
-    pad = jnp.pad(s, radius, constant_values=-jnp.inf)
-    m = _box(pad, (2 * radius + 1, 2 * radius + 1), "max")
-    return (s > 0) & (s >= m)
+    """Mean-shift seeds: cells with ``S > 0`` and no higher cell within ``radius`` (a
+    ``(2 radius + 1)^2`` window), one per plateau: of equal maxima within a window only the
+    first (lowest flat index) is kept, so a flat top of ``S`` (``Q_a`` is a box maximum,
+    so every pole has one, of about ``a x a`` cells) takes one of the ``max_poles`` seeds
+    instead of all of them (the authors' code seeds at the centroid of each plateau)."""
+    w = (2 * radius + 1, 2 * radius + 1)
+    m = _box(jnp.pad(s, radius, constant_values=-jnp.inf), w, "max")
+    peak = (s > 0) & (s >= m)
+    n = s.size  # flat indices are exact in float32 up to 2^24 cells
+    idx = jnp.where(peak, jnp.arange(n, dtype=s.dtype).reshape(s.shape), float(n))
+    first = -_box(jnp.pad(-idx, radius, constant_values=-float(n)), w, "max")
+    return peak & (idx == first)
 
 
 def mean_shift(
@@ -413,7 +474,7 @@ def _poles_from_scores(q_all: Array, cfg: PoleConfig) -> _RawPoles:
     w_a = jnp.sum(jnp.where(in_run[None], raw, 0.0), -1) / n_run  # [A k]
     mean_a = jnp.sum(jnp.where(in_run[None], cols, 0.0), -1) / n_run  # [A k]
     w_sum = jnp.maximum(jnp.sum(w_a, 0), 1e-12)
-    widths = jnp.asarray(cfg.widths, q.dtype)
+    widths = jnp.asarray(cfg.width_cells, q.dtype)
     width = jnp.sum(w_a * widths[:, None], 0) / w_sum
     score = jnp.sum(w_a * mean_a, 0) / w_sum  # run mean of the w_a-weighted score maps
     valid = valid & (col_h > 0)
@@ -422,7 +483,7 @@ def _poles_from_scores(q_all: Array, cfg: PoleConfig) -> _RawPoles:
 
 @eqx.filter_jit
 def _extract_occ(occ: Array, cfg: PoleConfig) -> _RawPoles:
-    q_all = pole_score_maps(occ, tuple(int(a) for a in cfg.widths), cfg.free_cells)
+    q_all = pole_score_maps(occ, cfg.width_cells, cfg.free_cells)
     return _poles_from_scores(q_all, cfg)
 
 
@@ -501,7 +562,7 @@ def _extract_rays(rays: RayBatch, spec: GridSpec, cfg: PoleConfig) -> tuple[_Raw
     )
     alpha, beta = matched_beta_prior(stats)
     occ = fast_occupancy(beta_posterior(stats, alpha=alpha, beta=beta), cfg.mu_o)
-    q_all = pole_score_maps(occ, tuple(int(a) for a in cfg.widths), cfg.free_cells)
+    q_all = pole_score_maps(occ, cfg.width_cells, cfg.free_cells)
     return _poles_from_scores(q_all, cfg), occ
 
 

@@ -12,8 +12,19 @@
 
 Label conventions (organized scans give label images ``[H W]``; flat ``[K]`` works too):
 
-- ground truth: a positive integer is a ground-truth plane; ``0`` or a negative value marks
-  an unlabelled point (no return, clutter, unknown) that is excluded from all counting;
+- ground truth: an integer ``>= min_gt_label`` (default 1: every positive label) is a
+  ground-truth plane; a smaller value (``0``, negative, or a positive label below
+  ``min_gt_label``) marks an unlabelled point (no return, clutter, a non-plane class) that
+  is excluded from all counting. Which labels are planes depends on the benchmark:
+
+  - scans from :func:`lidarjax.datasets.simulate_synpeb_scan` / ``synpeb_scan`` (and PCD
+    files written from them with ``write_synpeb_pcd``) label every face a plane, ``1..P``
+    (room faces ``1..6``, objects from ``7``), ``0`` = no return: use the default ``1``;
+  - the published SynPEB files (e.g. the shared crop ``synpeb/test_100.pcd``, read with
+    ``load_synpeb_pcd``) number their planes from 10; the authors' evaluation
+    (acschaefer/ppe, ``evalexp.m``) counts only labels ``>= 10`` as ground-truth planes
+    (the crop's label 3 is a 20-ray sliver between two planes, not a plane): pass
+    ``min_gt_label=10`` there.
 - prediction: a non-negative integer is an extracted plane; a negative value (``-1``) marks
   a point not assigned to any plane.
 
@@ -52,7 +63,7 @@ class HooverScores:
 
     Attributes:
         threshold: the tolerance ``T`` used.
-        n_gt: number of ground-truth regions (distinct positive labels).
+        n_gt: number of ground-truth regions (distinct labels ``>= min_gt_label``).
         n_pred: number of machine regions taking part (see the module docstring).
         n_correct: number of correct detections (one-to-one pairs).
         n_over: number of over-segmented ground-truth regions.
@@ -116,7 +127,7 @@ def _at_least(overlap: np.ndarray, threshold: float, size: np.ndarray) -> np.nda
 
 @dataclass(frozen=True)
 class _Contingency:
-    gt_ids: np.ndarray  # [m] positive ground-truth labels
+    gt_ids: np.ndarray  # [m] ground-truth plane labels (>= min_gt_label)
     pred_ids: np.ndarray  # [n] machine labels taking part
     overlap: np.ndarray  # [m n] O_mn
     gt_size: np.ndarray  # [m] M_m
@@ -124,10 +135,22 @@ class _Contingency:
     n_labelled: int  # K, number of labelled ground-truth points
 
 
-def _contingency(gt: np.ndarray, pred: np.ndarray, count_unlabelled: bool) -> _Contingency:
+def _check_min_gt_label(min_gt_label) -> int:
+    if (
+        isinstance(min_gt_label, bool)
+        or not isinstance(min_gt_label, (int, np.integer))
+        or min_gt_label < 1
+    ):
+        raise ValueError(f"min_gt_label must be an integer >= 1, got {min_gt_label!r}")
+    return int(min_gt_label)
+
+
+def _contingency(
+    gt: np.ndarray, pred: np.ndarray, count_unlabelled: bool, min_gt_label: int = 1
+) -> _Contingency:
     gt = gt.ravel()
     pred = pred.ravel()
-    gt_ok = gt > 0
+    gt_ok = gt >= min_gt_label
     pred_ok = pred >= 0
     gt_ids, gt_idx = np.unique(gt[gt_ok], return_inverse=True)
     pred_mask = pred_ok if count_unlabelled else pred_ok & gt_ok
@@ -172,6 +195,7 @@ def hoover_scores(
     pred_normals: Any = None,
     gt_adjacent: np.ndarray | Sequence[Sequence[int]] | None = None,
     count_unlabelled: bool = False,
+    min_gt_label: int = 1,
 ) -> HooverScores:
     """Hoover et al. (1996) segmentation scores of an extracted plane segmentation.
 
@@ -205,7 +229,8 @@ def hoover_scores(
     skipped.
 
     Args:
-        gt_labels: ``[H W]`` (or any shape) int ground-truth labels; ``<= 0`` unlabelled.
+        gt_labels: ``[H W]`` (or any shape) int ground-truth labels; ``< min_gt_label``
+            unlabelled.
         pred_labels: int machine labels of the same shape; ``< 0`` unassigned.
         threshold: the tolerance ``T``, ``0.5 < T <= 1`` (the dissertation uses 0.8).
         gt_normals: indexable by a ground-truth label (an array ``[L 3]`` or a mapping),
@@ -214,6 +239,10 @@ def hoover_scores(
         gt_adjacent: ``[A 2]`` int, pairs of adjacent ground-truth labels.
         count_unlabelled: count machine-region points on unlabelled ground truth in
             ``P_n`` (the authors' convention) instead of ignoring them.
+        min_gt_label: the smallest ground-truth label that is a plane; smaller labels are
+            unlabelled points like ``0``. Default 1 (every positive label is a plane: this
+            package's SynPEB-style generator); 10 for the published SynPEB files, as in
+            the authors' evaluation (module docstring).
 
     Returns:
         The :class:`HooverScores`.
@@ -221,8 +250,8 @@ def hoover_scores(
     Raises:
         ValueError: if the label arrays are not integer or differ in shape, ``threshold``
             is outside ``(0.5, 1]``, only some of ``gt_normals``, ``pred_normals``,
-            ``gt_adjacent`` are given, ``gt_adjacent`` is not ``[A 2]`` int, or a needed
-            normal is missing or degenerate.
+            ``gt_adjacent`` are given, ``gt_adjacent`` is not ``[A 2]`` int, a needed
+            normal is missing or degenerate, or ``min_gt_label`` is not an integer >= 1.
     """
     gt = _int_labels(gt_labels, "gt_labels")
     pred = _int_labels(pred_labels, "pred_labels")
@@ -231,6 +260,7 @@ def hoover_scores(
             f"gt_labels and pred_labels must have equal shapes, got {gt.shape}, {pred.shape}"
         )
     t = _check_threshold(threshold)
+    min_label = _check_min_gt_label(min_gt_label)
     given = [x is not None for x in (gt_normals, pred_normals, gt_adjacent)]
     if any(given) and not all(given):
         raise ValueError("gt_normals, pred_normals and gt_adjacent must be given together")
@@ -244,7 +274,7 @@ def hoover_scores(
         if not np.issubdtype(adjacent.dtype, np.integer):
             raise ValueError(f"gt_adjacent must hold integer labels, got {adjacent.dtype}")
 
-    c = _contingency(gt, pred, count_unlabelled)
+    c = _contingency(gt, pred, count_unlabelled, min_label)
     o = c.overlap
     # inside[m, n]: machine region n lies (to fraction T) inside ground-truth region m.
     inside = _at_least(o, t, c.pred_size[None, :])
@@ -321,6 +351,7 @@ def k_value(
     *,
     threshold: float = 0.8,
     count_unlabelled: bool = False,
+    min_gt_label: int = 1,
 ) -> float:
     """Fraction ``k`` of points in correctly segmented planes, Eq. (11.5).
 
@@ -333,10 +364,11 @@ def k_value(
     ground-truth points.
 
     Args:
-        gt_labels: int ground-truth labels; ``<= 0`` unlabelled.
+        gt_labels: int ground-truth labels; ``< min_gt_label`` unlabelled.
         pred_labels: int machine labels of the same shape; ``< 0`` unassigned.
         threshold: the tolerance ``T``, ``0.5 < T <= 1``.
         count_unlabelled: see :func:`hoover_scores`.
+        min_gt_label: the smallest ground-truth plane label, see :func:`hoover_scores`.
 
     Returns:
         ``k`` in ``[0, 1]``, ``nan`` if no point is labelled.
@@ -345,7 +377,11 @@ def k_value(
         ValueError: as :func:`hoover_scores`.
     """
     return hoover_scores(
-        gt_labels, pred_labels, threshold=threshold, count_unlabelled=count_unlabelled
+        gt_labels,
+        pred_labels,
+        threshold=threshold,
+        count_unlabelled=count_unlabelled,
+        min_gt_label=min_gt_label,
     ).k
 
 

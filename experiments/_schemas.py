@@ -30,6 +30,7 @@ import math
 import typing
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 from omegaconf import MISSING, DictConfig, ListConfig, OmegaConf
@@ -202,6 +203,31 @@ def _check_logs(problems, key: str, names, *, allow_empty: bool = False) -> None
         why = _log_problem(n)
         if why:
             problems.append((f"{key}[{i}]", n, why))
+
+
+def log_name(entry: str) -> str:
+    """The name of a ``logs`` entry: a registered log's name, or a log file's name without
+    its ``.gz`` / ``.log`` / ``.clf`` / ``.txt`` suffixes (``/data/my.log.gz`` -> ``my``)."""
+    if not Path(str(entry)).expanduser().is_file():
+        return str(entry)
+    name = Path(str(entry)).name
+    for suffix in (".gz", ".log", ".clf", ".txt"):
+        name = name.removesuffix(suffix)
+    return name
+
+
+def _check_log_sources(problems, key: str, entries, *, allow_empty: bool = False) -> None:
+    """Like :func:`_check_logs`, but an entry may also be the path of an existing file."""
+    names = [e for e in entries if not Path(str(e)).expanduser().is_file()]
+    if not list(entries) and not allow_empty:
+        problems.append((key, list(entries), "must name at least one log"))
+    if unique(list(entries)):
+        problems.append((key, list(entries), unique(list(entries))))
+    for i, e in enumerate(entries):
+        if e in names:
+            why = _log_problem(e)
+            if why:
+                problems.append((f"{key}[{i}]", e, why + " (or give the path of a log file)"))
 
 
 def _check_names(problems, key: str, names, known, *, allow_empty: bool = False) -> None:
@@ -758,8 +784,10 @@ class PolylinesConfig:
 
     seed: int = _f(nonnegative)
     x64: bool = MISSING
-    logs: list[str] = MISSING  # may be empty: simulated scans only
+    logs: list[str] = MISSING  # may be empty: simulated scans only; names or file paths
+    scans: str = _f(one_of("paper", "random"))
     scans_per_log: int = _f(count)
+    scan_indices: dict[str, Any] = MISSING  # log name (file name for a path) -> indices
     J: list[int] = _f(nonempty, unique, each=count)
     l_max_m: float = _f(positive)
     d_rm_m: float = _f(nonnegative)
@@ -769,10 +797,27 @@ class PolylinesConfig:
     timing_scans: int = _f(count)
     nelder_mead: NelderMead = _node(NelderMead)
     example: PolylineExample = _node(PolylineExample)
+    paper_scans: dict[str, Any] = MISSING  # log name -> the authors' scan indices
 
     @staticmethod
     def check(cfg, problems) -> None:
-        _check_logs(problems, "logs", cfg.logs, allow_empty=True)
+        _check_log_sources(problems, "logs", cfg.logs, allow_empty=True)
+        for key in ("scan_indices", "paper_scans"):
+            for name, idx in (cfg.get(key) or {}).items():
+                ok = isinstance(idx, (list, ListConfig)) and all(
+                    isinstance(i, int) and not isinstance(i, bool) for i in idx
+                )
+                if not ok or not list(idx) or any(i < 0 for i in idx) or unique(list(idx)):
+                    problems.append(
+                        (
+                            f"{key}.{name}",
+                            list(idx),
+                            "must be a non-empty list of distinct scan indices >= 0",
+                        )
+                    )
+        unused = set(cfg.get("scan_indices") or {}) - {log_name(e) for e in cfg.logs}
+        if unused:
+            problems.append(("scan_indices", sorted(unused), "names logs that are not in logs"))
         _check_names(problems, "methods", cfg.methods, POLYLINE_METHODS)
         n = cfg.simulation.n_scans
         if n != "auto" and (not isinstance(n, int) or isinstance(n, bool) or n < 0):
@@ -890,7 +935,7 @@ class PlanesConfig:
     x64: bool = MISSING
     workers: int = _f(count)
     parts: list[str] = MISSING
-    extra_scans: list[str] = MISSING  # PCD files; checked to exist before any work
+    extra_scans: list[str] = MISSING  # PCD files or registered names; checked before any work
     synpeb_min_plane_label: int = _f(count)
     shape: list[int] = _f(length(2), each=count)
     n_train: int = _f(nonnegative)
@@ -909,9 +954,13 @@ class PlanesConfig:
         from lidarjax.features import msac_planes, peac_planes
 
         _check_names(problems, "parts", cfg.parts, PLANE_PARTS)
+        from lidarjax.datasets import REGISTRY
+
         for i, path in enumerate(cfg.extra_scans):
-            if not Path(str(path)).expanduser().is_file():
-                problems.append((f"extra_scans[{i}]", path, "no such file (a SynPEB PCD scan)"))
+            if path not in REGISTRY and not Path(str(path)).expanduser().is_file():
+                problems.append(
+                    (f"extra_scans[{i}]", path, "no such file or registered scan (SynPEB PCD)")
+                )
         _check_noise_table(problems, cfg.noise_table)
         _check_names(problems, "methods", cfg.methods, PLANE_METHODS)
         for name, fn in (("msac", msac_planes), ("peac", peac_planes)):

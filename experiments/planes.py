@@ -106,6 +106,16 @@ def noise_scan(split: str, index: int, shape, radial_sigma_m: float, angular_sig
     )
 
 
+def _scan_path(entry: str) -> str:
+    """The file of an ``extra_scans`` entry: a registered SynPEB PCD (e.g.
+    ``synpeb-test-100``, fetched through the checksummed registry) or a path."""
+    from lidarjax.datasets import REGISTRY, fetch
+
+    if entry in REGISTRY:
+        return str(fetch(entry))
+    return str(Path(entry).expanduser().resolve())
+
+
 def _load(source: dict):
     """``(points [H W 3] m, gt labels [H W], SynPEBScan or None)`` of a job's scan."""
     from lidarjax.datasets import fetch, load_synpeb_pcd, synpeb_scan
@@ -559,7 +569,7 @@ def main(cfg: DictConfig) -> None:
     test = [dict(kind="synpeb", split="test", index=i, shape=shape) for i in range(cfg.n_test)]
     crop = dict(kind="crop", min_gt_label=real_label)
     extra = {
-        str(p): dict(kind="pcd", path=str(Path(p).expanduser().resolve()), min_gt_label=real_label)
+        str(p): dict(kind="pcd", path=_scan_path(str(p)), min_gt_label=real_label)
         for p in cfg.extra_scans
     }
     grids = {"PPE": _ppe_params(cfg), "MSAC": _grid(cfg.msac.grid), "PEAC": _grid(cfg.peac.grid)}

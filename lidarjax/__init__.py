@@ -9,3 +9,7 @@ See ``README.md`` and ``../shared/DESIGN.md``.
 """
 
 __version__ = "0.1.0"
+
+from ._runtime import pin_to_one_core as pin_to_one_core  # noqa: E402
+
+__all__ = ["__version__", "pin_to_one_core"]

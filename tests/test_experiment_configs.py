@@ -200,6 +200,14 @@ VALUE_ERRORS = [
     ("decay_rate_fields", ["rbf.width=0"], "rbf.width = 0.0", "> 0"),
     ("polylines", ["methods=[PLE,PLE++]"], "methods[1] = 'PLE++'", "choose from"),
     ("polylines", ["simulation.n_scans=-1"], "simulation.n_scans = -1", "'auto' or an int"),
+    ("polylines", ["logs=[/no/such/file.log]"], "logs[0] = '/no/such/file.log'", "path of a log"),
+    ("polylines", ["+scan_indices={intel: [-1]}"], "scan_indices.intel = [-1]", "distinct scan"),
+    (
+        "polylines",
+        ["logs=[intel]", "+scan_indices={csail: [1]}"],
+        "scan_indices = ['csail']",
+        "not in logs",
+    ),
     ("planes", ["+msac.grid.nonsense=[1]"], "msac.grid.nonsense = [1]", "not an argument"),
     ("planes", ["methods=[PPE,RANSAC]"], "methods[1] = 'RANSAC'", "choose from"),
     ("planes", ["ppe.grid.kappa=[16,-1]"], "ppe.grid.kappa[1] = -1", "> 0"),
@@ -310,3 +318,12 @@ def test_mcl_docstring_example_runs(tmp_path):
     assert r["n_steps"] == 20 and r["refine"]["steps"] == [19]
     assert np.isfinite(r["refine"]["refined_pos_err"])
     assert "gradient refinement" in (tmp_path / "results.md").read_text()
+
+
+def test_planes_extra_scans_take_registered_names_and_paths(tmp_path):
+    """``extra_scans`` entries may be registered SynPEB scans or files; others are named."""
+    f = tmp_path / "scan.pcd"
+    f.write_text("x")
+    validate(composed("planes", [f"extra_scans=[synpeb-test-100,{f}]"]), "planes")
+    with pytest.raises(ConfigError, match=r"extra_scans\[0\] = 'synpeb-nope'"):
+        validate(composed("planes", ["extra_scans=[synpeb-nope]"]), "planes")

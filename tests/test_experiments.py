@@ -202,6 +202,7 @@ def test_polylines_small(tmp_path):
         "polylines",
         tmp_path,
         "logs=[intel]",
+        "scans=random",
         "scans_per_log=3",
         "J=[10]",
         "timing_J=[10]",
@@ -212,6 +213,8 @@ def test_polylines_small(tmp_path):
         "nelder_mead.max_evaluations=300",
     )
     assert len(res["scan_indices"]["intel"]) == 3
+    assert res["scan_selection"] == {"intel": "random"}
+    assert res["per_log_vs_paper"]["intel"]["J"]["10"]["PLE+"]["ratio"] is None  # other scans
     assert res["n_scans"] == {"real": 3, "simulated": 3}
     for kind in ("real", "simulated"):
         acc = res["accuracy"][kind]["10"]
@@ -330,7 +333,7 @@ def test_planes_missing_scan_file_is_a_config_error(tmp_path):
         [*cmd, f"extra_scans=[{missing}]"], capture_output=True, text=True, timeout=300, cwd=ROOT
     )
     assert proc.returncode != 0
-    assert f"extra_scans[0] = '{missing}': no such file" in proc.stderr
+    assert f"extra_scans[0] = '{missing}': no such file or registered scan" in proc.stderr
     assert not (tmp_path / "results.json").exists()
 
 
@@ -447,3 +450,41 @@ def test_poles_relative_odometry():
         # sample std of >= 1000 normals: within 10 % of 0.02; mean ~ 0
         assert big.sum() >= 1000 and abs(rel.std() - 0.02) < 0.002, (j, rel.std())
         assert abs(rel.mean()) < 4 * 0.02 / np.sqrt(big.sum())
+
+
+@pytest.mark.slow
+def test_polylines_per_log_on_paper_scans_and_on_a_log_file(tmp_path):
+    """``scans: paper`` evaluates a registered log on the authors' 20 scans and compares
+    PLE / PLE+ per log with the paper; a log given as a file path runs on explicit
+    ``scan_indices``."""
+    import yaml
+
+    from lidarjax.datasets import fetch
+
+    cfg = yaml.safe_load((ROOT / "configs" / "polylines.yaml").read_text())
+    path = str(fetch("intel"))
+    common = ["J=[10]", "methods=[PLE,PLE+]", "simulation.n_scans=0", "timing_J=[]",
+              "nelder_mead.n_scans=0", "example.J=10"]  # fmt: skip
+    res = run_experiment("polylines", tmp_path / "paper", "logs=[intel]", *common)
+    assert res["scan_selection"] == {"intel": "paper"}
+    assert res["scan_indices"]["intel"] == cfg["paper_scans"]["intel"]
+    row = res["per_log_vs_paper"]["intel"]["J"]["10"]
+    # PLE is deterministic and the paper's scans are the same: its mean RMSE equals the
+    # paper's per-log value (96.6 mm) to the rounding of the published ranges
+    assert row["PLE"]["ratio"] == pytest.approx(1.0, abs=0.01)
+    assert row["PLE+"]["ours_mm"] < row["PLE"]["ours_mm"]
+    assert row["PLE+"]["ratio"] is not None and row["PLE+"]["f"] == row["PLE"]["f"]
+    assert (
+        "Per log: PLE and PLE+ against the paper" in (tmp_path / "paper" / "results.md").read_text()
+    )
+
+    res = run_experiment(
+        "polylines",
+        tmp_path / "file",
+        f"logs=[{path}]",
+        "+scan_indices={intel-corrected: [30, 62]}",
+        *common,
+    )
+    assert Path(path).name == "intel-corrected.log.gz"  # the shared file of the registry
+    assert res["scan_indices"] == {"intel-corrected": [30, 62]}
+    assert res["scan_selection"] == {"intel-corrected": "explicit"}

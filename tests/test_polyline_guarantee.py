@@ -137,13 +137,15 @@ def test_expected_ranges_include_end_vertex_rays_under_jit():
 def test_ple_plus_keeps_the_vertices_when_no_trial_step_is_accepted():
     """No trial step fraction passes the check, so PLE+ must return its input unchanged.
 
-    The input's first end vertex sits 0.1 um off its ray, inside its segment, so that ray is
-    not explained. Every trial (fraction 1 ... 1/32 of the least-squares step) puts the
-    end vertices on their rays, which explains that ray: a change of the explained set,
-    so every trial is rejected. The fraction-0 trial of the old code re-projected the end
-    vertex too, the same mechanism by which rounding (an end vertex a few ulps off its
-    ray) made it fail on real scans; the old code then carried the rejected full step
-    forward with the previous error (``f`` changed and ``sse_after_m2`` was stale)."""
+    The input is one segment whose two end vertices sit 0.1 um off their rays, inside the
+    segment, so those two rays are not explained. Every candidate move of a vertex (step
+    fractions 1 ... 1/32 per polyline and per vertex, restart solutions, pattern moves
+    along the ray) puts a moved end vertex on its ray, which explains that ray: a change
+    of the explained set, so every candidate is rejected. The fraction-0 trial of the old
+    code re-projected the end vertex too, the same mechanism by which rounding (an end
+    vertex a few ulps off its ray) made it fail on real scans; the old code then carried
+    the rejected full step forward with the previous error (``f`` changed and
+    ``sse_after_m2`` was stale)."""
     k = 31
     az = np.deg2rad(np.linspace(45.0, 135.0, k))
     rng = np.random.default_rng(0)
@@ -152,18 +154,21 @@ def test_ple_plus_keeps_the_vertices_when_no_trial_step_is_accepted():
     dirs = np.asarray(rays.directions)
     ends = r[:, None] * dirs
     verts = ends.copy()
-    e = ends[10] - ends[0]
-    verts[0] = ends[0] + 1e-7 * e / np.linalg.norm(e)
+    e = (ends[30] - ends[0]) / np.linalg.norm(ends[30] - ends[0])
+    verts[0] = ends[0] + 1e-7 * e
+    verts[30] = ends[30] - 1e-7 * e
     succ = np.full(k, -1, np.int32)
-    succ[[0, 10, 20]] = [10, 20, 30]
+    succ[0] = 30
     act = np.zeros(k, bool)
-    act[[0, 10, 20, 30]] = True
+    act[[0, 30]] = True
     m = PolylineMap(jnp.asarray(verts), jnp.asarray(succ), jnp.asarray(act))
     refl = np.ones(k, bool)
     sse0, hit0 = np_true_error(m, np.zeros(2), dirs, r, refl)
-    assert not hit0[0] and hit0[1:].all()  # the constructed case: ray 0 is not explained
-    on_ray = PolylineMap(m.vertices.at[0].set(jnp.asarray(ends[0])), m.successor, m.active)
-    assert np_true_error(on_ray, np.zeros(2), dirs, r, refl)[1].all()  # on its ray: hit
+    # the constructed case: rays 0 and 30 are not explained
+    assert not hit0[0] and not hit0[30] and hit0[1:30].all()
+    for i in (0, 30):  # either end vertex on its ray explains that ray
+        on_ray = PolylineMap(m.vertices.at[i].set(jnp.asarray(ends[i])), m.successor, m.active)
+        assert np_true_error(on_ray, np.zeros(2), dirs, r, refl)[1][i]
 
     plus = optimize_polylines(m, rays)
     sse1, hit1 = np_true_error(plus.map, np.zeros(2), dirs, r, refl)
@@ -172,7 +177,7 @@ def test_ple_plus_keeps_the_vertices_when_no_trial_step_is_accepted():
     assert float(plus.sse_before_m2) == pytest.approx(sse0, rel=1e-12)
     assert float(plus.sse_after_m2) == pytest.approx(sse1, rel=1e-12)
     np.testing.assert_array_equal(np.asarray(plus.map.vertices), verts)
-    assert float(plus.step_fraction) == 0.0
+    assert float(plus.moved_fraction) == 0.0
 
 
 # ---------------------------------------------------------------- the shared logs
@@ -184,7 +189,7 @@ def _experiment_scans(name: str, log, seed: int, per_log: int) -> np.ndarray:
     return np.sort(rng.choice(log.n_scans, size=min(per_log, log.n_scans), replace=False))
 
 
-SAMPLE_PER_LOG = 4  # of the experiment's scans per log; see the test's docstring
+SAMPLE_PER_LOG = 2  # of the experiment's scans per log; see the test's docstring
 # experiment scans on which the old PLE+ returned worse polylines than PLE (at some J of
 # 10-50, before the fix of issue #20); always part of the sample
 REGRESSED = {
@@ -202,9 +207,11 @@ def test_ple_plus_never_worse_than_ple_on_the_shared_logs():
     (PLE's own index-based count ``n_explained``), its true error (brute force) is at most
     PLE's, and it reports the true errors of its input and output.
 
-    Scans: per log, ``SAMPLE_PER_LOG`` of the experiment's 20 (``configs/polylines.yaml``:
-    seed, logs, ``scans_per_log``, ``J``, ``l_max_m``, ``d_rm_m``): the ``REGRESSED`` ones,
-    then seeded random ones, so every log and every J is covered within the time budget.
+    Scans: per log, ``SAMPLE_PER_LOG`` of the 20 random scans the experiment draws with
+    ``scans: random`` (``configs/polylines.yaml``: seed, logs, ``scans_per_log``, ``J``,
+    ``l_max_m``, ``d_rm_m``; the scans on which the old PLE+ regressed were found there):
+    the ``REGRESSED`` ones, then seeded random ones, so every log and every J is covered
+    within the time budget (PLE+ with its restarts costs about 3 s per 2 scans and J).
 
     Round-off allowance: the reported and brute-force errors sum the same squared residuals
     computed in a different order and formula (2x2 solve vs cross products); they differ by
@@ -254,3 +261,115 @@ def test_ple_plus_never_worse_than_ple_on_the_shared_logs():
                 checked += 1
     assert checked == len(cfg["logs"]) * len(cfg["J"]) * SAMPLE_PER_LOG
     print(f"{checked} scan x J cases in {time.perf_counter() - t_start:.1f} s")
+
+
+# ---------------------------------------------------------------- PLE+ search (issue #20)
+
+
+def _union_find_labels(succ: np.ndarray, real: np.ndarray) -> np.ndarray:
+    """Smallest member of each polyline (successor links), by plain union-find."""
+    parent = list(range(len(succ)))
+
+    def root(i):
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    for i, j in enumerate(succ):
+        if real[i] and j >= 0:
+            a, b = root(i), root(int(j))
+            parent[max(a, b)] = min(a, b)
+    return np.array([root(i) if real[i] else 0 for i in range(len(succ))])
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_polyline_component_labels_match_union_find(seed):
+    """``_component_labels`` (pointer doubling) labels every vertex with the smallest slot
+    of its polyline: open chains, cycles and single vertices in random slot order."""
+    from lidarjax.features._polyline import _component_labels
+
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(8, 80))
+    n_real = int(rng.integers(1, n + 1))
+    perm = rng.permutation(n_real)
+    succ = np.full(n, -1, np.int32)
+    pos = 0
+    while pos < n_real:
+        size = int(rng.integers(1, 12))
+        chain = perm[pos : pos + size]
+        succ[chain[:-1]] = chain[1:]
+        if len(chain) > 2 and rng.random() < 0.3:
+            succ[chain[-1]] = chain[0]  # a closed polyline
+        pos += size
+    real = np.arange(n) < n_real
+    got = np.asarray(_component_labels(jnp.asarray(succ), jnp.asarray(real)))
+    np.testing.assert_array_equal(got, _union_find_labels(succ, real))
+
+
+def _chain_objective(chain, v0, dirs, r, refl):
+    """Σ d² of one open polyline over the rays between its end vertices (brute force) as
+    a function of the paper's parameters: the ranges of the end vertices along their rays
+    and the polar coordinates (angle, range) of the interior vertices."""
+    idx = np.arange(chain[0], chain[-1] + 1)
+    is_end = [k in (0, len(chain) - 1) for k in range(len(chain))]
+
+    def unpack(x):
+        pts, j = [], 0
+        for s, end in zip(chain, is_end):
+            if end:
+                pts.append(x[j] * dirs[s])
+                j += 1
+            else:
+                pts.append(x[j + 1] * np.array([np.cos(x[j]), np.sin(x[j])]))
+                j += 2
+        return np.asarray(pts)
+
+    def f(x):
+        p = unpack(x)
+        t = np_first_hit(np.zeros(2), dirs[idx], np.stack([p[:-1], p[1:]], 1))
+        hit = refl[idx] & np.isfinite(t)
+        return float(np.sum((r[idx] - np.where(hit, t, 0.0))[hit] ** 2))
+
+    def pack(v):
+        x = []
+        for s, end in zip(chain, is_end):
+            rho = float(np.linalg.norm(v[s]))
+            x += [rho] if end else [float(np.arctan2(v[s][1], v[s][0])), rho]
+        return np.asarray(x)
+
+    return f, pack(v0), pack
+
+
+@pytest.mark.slow
+def test_ple_plus_restarts_reach_the_nelder_mead_optimum_on_a_real_scan():
+    """belgioioso scan 217, J = 10 (one of the paper's scans): LM from PLE's vertices
+    alone stops in a local minimum of Eq. (10.4) on the first polyline (Σ d² 10.45 m²),
+    while Nelder–Mead from PLE's vertices (the paper's optimiser; scipy here, run to
+    convergence on the brute-force objective) reaches 7.35 m², and the paper reports
+    199.3 mm RMSE for this scan. PLE+ with its default restarts must reach Nelder–Mead's
+    error on every polyline (within 0.1 %) and keep the explained rays."""
+    from scipy.optimize import minimize
+
+    log = load_carmen(fetch("belgioioso"))
+    r = np.minimum(log.ranges_m[217], log.usable_range_m)
+    rays = R.from_scan(jaxlie.SE2.identity(), log.azimuths_rad, r, 0.0, log.usable_range_m)
+    refl = np.asarray(rays.kind) == R.HIT
+    dirs = np.asarray(rays.directions)
+    ple = extract_polylines(rays, max_vertices=10, l_max_m=1.0, d_rm_m=0.5, closed=False)
+    plus = optimize_polylines(ple, rays)
+    v0, v1 = np.asarray(ple.map.vertices), np.asarray(plus.map.vertices)
+    chains, closed = ple.map.to_chains()
+    assert not any(closed)
+    for chain in chains:
+        chain = [int(s) for s in chain]
+        f, x0, pack = _chain_objective(chain, v0, dirs, r, refl)
+        # MATLAB's fminsearch as the authors ran it (initial simplex: 5 % of each
+        # parameter; TolX = TolFun = 1e-2), then polished to convergence
+        nm = minimize(f, x0, method="Nelder-Mead", options={"xatol": 1e-2, "fatol": 1e-2})
+        nm = minimize(f, nm.x, method="Nelder-Mead", options={"xatol": 1e-9, "fatol": 1e-12})
+        assert f(pack(v1)) <= nm.fun * (1 + 1e-3), (chain, f(pack(v1)), nm.fun)
+    sse0, hit0 = np_true_error(ple.map, np.zeros(2), dirs, r, refl)
+    sse1, hit1 = np_true_error(plus.map, np.zeros(2), dirs, r, refl)
+    assert np.array_equal(hit0, hit1)
+    assert sse1 < 0.62 * sse0  # 19.07 -> 11.63 m² (LM alone: 14.73)

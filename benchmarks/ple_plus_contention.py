@@ -1,0 +1,100 @@
+"""PLE+ under CPU contention: one scan per call, unpinned vs pinned to one core, on an
+idle machine and with two busy-loop processes (issue #20).
+
+Every condition runs in a fresh subprocess (pinning must precede JAX's start-up): 8
+Intel scans (180 rays) at J = 50, PLE+ with its defaults after one warm-up call per scan,
+timed with ``block_until_ready``. "loaded" starts two ``while True: pass`` processes for
+the duration of the subprocess (always stopped). The 1-minute load average is recorded
+before each condition. Writes ``benchmarks/results/ple_plus_contention.json``.
+
+Usage: ``python benchmarks/ple_plus_contention.py [--scans N]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+OUT = Path(__file__).resolve().parent / "results" / "ple_plus_contention.json"
+
+WORKER = r"""
+import json, sys, time
+pin = sys.argv[1] == "pinned"
+n = int(sys.argv[2])
+import lidarjax
+if pin:
+    lidarjax.pin_to_one_core()
+import jax
+jax.config.update("jax_enable_x64", True)
+import jaxlie, numpy as np
+from lidarjax import features as F
+from lidarjax.datasets import fetch, load_carmen
+from lidarjax.rays import from_scan
+log = load_carmen(fetch("intel"))
+rmax = log.usable_range_m
+times = []
+for s in range(0, 40 * n, 40):
+    r = np.minimum(log.ranges_m[s], rmax)
+    rays = from_scan(jaxlie.SE2.identity(), log.azimuths_rad, r, 0.0, rmax)
+    ple = F.extract_polylines(rays, max_vertices=50, l_max_m=1.0, d_rm_m=0.5, closed=False)
+    jax.block_until_ready(F.optimize_polylines(ple, rays).map.vertices)  # warm-up
+    t = time.perf_counter()
+    jax.block_until_ready(F.optimize_polylines(ple, rays).map.vertices)
+    times.append(time.perf_counter() - t)
+print(json.dumps(times))
+"""
+
+
+def run(pin: str, loaded: bool, n: int) -> dict:
+    load_before = os.getloadavg()[0]
+    burners = []
+    try:
+        if loaded:
+            burners = [
+                subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(2)
+            ]
+            time.sleep(1.0)
+        out = subprocess.run(
+            [sys.executable, "-c", WORKER, pin, str(n)], capture_output=True, text=True,
+            timeout=3600,
+        )  # fmt: skip
+    finally:
+        for b in burners:
+            b.kill()
+            b.wait()
+    if out.returncode != 0:
+        raise RuntimeError(out.stderr[-2000:])
+    times = json.loads(out.stdout.strip().splitlines()[-1])
+    s = sorted(times)
+    return {
+        "pin": pin,
+        "loaded": loaded,
+        "load_1min_before": load_before,
+        "times_s": times,
+        "median_s": s[len(s) // 2],
+        "max_s": s[-1],
+    }
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scans", type=int, default=8)
+    args = ap.parse_args(argv)
+    rows = []
+    for loaded in (False, True):
+        for pin in ("unpinned", "pinned"):
+            rows.append(run(pin, loaded, args.scans))
+            r = rows[-1]
+            print(f"{'loaded' if loaded else 'idle':6s} {pin:8s} load {r['load_1min_before']:.2f}: "
+                  f"median {r['median_s']:.3f} s, max {r['max_s']:.3f} s", flush=True)  # fmt: skip
+    OUT.parent.mkdir(parents=True, exist_ok=True)
+    OUT.write_text(json.dumps({"cpu_count": os.cpu_count(), "rows": rows}, indent=2) + "\n")
+
+
+if __name__ == "__main__":
+    main()

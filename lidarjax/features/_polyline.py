@@ -808,6 +808,8 @@ class PolylineOptimization(eqx.Module):
 _ANCHOR = 1e-3
 PATTERN_M = (0.02, 0.1, 0.3)
 """Default lengths (m) of PLE+'s per-vertex pattern moves."""
+RESTART_SIGMA = (0.02, 0.05)
+"""Default spreads of PLE+'s random starts, relative to each vertex's range (cycled)."""
 # trial fractions of a round's least-squares step, largest first; when none is accepted
 # the round keeps its current vertices (no trial of fraction 0: re-projecting the end
 # vertices onto their rays need not reproduce the current map to the last bit)
@@ -847,7 +849,7 @@ class _PlusSettings:
     max_steps: int
     rounds: int
     restarts: int
-    restart_sigma: float
+    restart_sigma: tuple[float, ...]
     pattern_m: tuple[float, ...]
     seed: int
 
@@ -952,11 +954,14 @@ def _plus_one(m: PolylineMap, sc: _Scan, solver, n_params: int, cfg: _PlusSettin
             )
             rng_c = jnp.linalg.norm(pc - sc.origin, axis=-1)
             t_c0 = jnp.einsum("jd,jd->j", pc - sc.origin, dir_p)
-            ps = pc[None] + restart_sigma * rng_c[None, :, None] * z
+            # the spreads cycle over the restarts
+            sig = jnp.asarray(
+                [restart_sigma[i % len(restart_sigma)] for i in range(restarts)], pc.dtype
+            )[:, None]  # [R 1]
+            ps = pc[None] + (sig * rng_c[None])[..., None] * z
             ps = jnp.where(
                 end_p[None, :, None],
-                sc.origin
-                + (t_c0[None] + restart_sigma * rng_c[None] * z[..., 0])[..., None] * dir_p[None],
+                sc.origin + (t_c0[None] + sig * rng_c[None] * z[..., 0])[..., None] * dir_p[None],
                 ps,
             )
             _, p_rs, steps_rs, _ = jax.vmap(solve_from)(ps)
@@ -1127,7 +1132,7 @@ def optimize_polylines(
     max_steps: int = 10,
     rounds: int = 10,
     restarts: int = 4,
-    restart_sigma: float = 0.05,
+    restart_sigma: float | Sequence[float] = RESTART_SIGMA,
     pattern_m: Sequence[float] = PATTERN_M,
     seed: int = 0,
 ) -> PolylineOptimization:
@@ -1143,8 +1148,9 @@ def optimize_polylines(
 
     The search runs for ``rounds`` rounds. Each round re-associates the rays with the
     current map and solves from the current vertices and from ``restarts`` random starts
-    (each vertex moved by a Gaussian of ``restart_sigma`` times its range; end vertices
-    along their ray), as the paper's Nelder–Mead simplex (5 % of each coordinate) escapes
+    (each vertex moved by a Gaussian of ``restart_sigma`` times its range, 2 % and 5 % in
+    turn; end vertices along their ray), as the paper's Nelder–Mead simplex (5 % of each
+    coordinate) escapes
     the local minima that a descent from PLE's vertices stops in. The candidate moves are
     then checked with the true first-intersection model, each exactly:
 
@@ -1173,7 +1179,8 @@ def optimize_polylines(
         rounds: association / solve / check rounds.
         restarts: random starts solved per round (0: descent from the current vertices
             only).
-        restart_sigma: spread of the random starts, relative to each vertex's range.
+        restart_sigma: spread of the random starts, relative to each vertex's range; a
+            sequence is cycled over the restarts (default 2 % and 5 %).
         pattern_m: lengths (m) of the per-vertex pattern moves (empty: none).
         seed: seed of the random starts.
 
@@ -1202,8 +1209,13 @@ def optimize_polylines(
         raise ValueError(f"rounds must be >= 1, got {rounds}")
     if int(restarts) < 0:
         raise ValueError(f"restarts must be >= 0, got {restarts}")
-    if not (np.isfinite(restart_sigma) and restart_sigma > 0):
-        raise ValueError(f"restart_sigma must be finite and > 0, got {restart_sigma}")
+    restart_sigma = tuple(
+        float(x) for x in (restart_sigma if np.ndim(restart_sigma) else [restart_sigma])
+    )
+    if not restart_sigma or not all(np.isfinite(x) and x > 0 for x in restart_sigma):
+        raise ValueError(
+            f"restart_sigma must be finite and > 0 (one or several), got {restart_sigma}"
+        )
     pattern_m = tuple(float(x) for x in pattern_m)
     if not all(np.isfinite(x) and x > 0 for x in pattern_m):
         raise ValueError(f"pattern_m must hold finite lengths > 0 (m), got {pattern_m}")
@@ -1212,7 +1224,7 @@ def optimize_polylines(
     n_active = int(jnp.max(m.n_vertices)) if m.active.size else 0
     n_params = max(8, -(-n_active // 8) * 8)  # bucket to limit recompiles
     cfg = _PlusSettings(
-        int(max_steps), int(rounds), int(restarts), float(restart_sigma), pattern_m, int(seed)
+        int(max_steps), int(rounds), int(restarts), restart_sigma, pattern_m, int(seed)
     )
     out, s0, s1, frac, res, steps = _optimize(m, _scan_arrays(rays), solver, n_params, cfg)
     return PolylineOptimization(out, s0, s1, frac, res, steps)

@@ -357,3 +357,23 @@ def test_ple_plus_end_vertices_stay_on_their_rays():
     d = np.asarray(rays.directions)[ends]
     np.testing.assert_allclose(v[:, 0] * d[:, 1] - v[:, 1] * d[:, 0], 0, atol=1e-9)
     assert np.any(np.abs(np.asarray(plus.map.vertices) - np.asarray(ple.map.vertices)) > 1e-6)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "name"),
+    [
+        ({"restarts": -1}, "restarts"),
+        ({"restart_sigma": 0.0}, "restart_sigma"),
+        ({"restart_sigma": (0.02, float("nan"))}, "restart_sigma"),
+        ({"restart_sigma": ()}, "restart_sigma"),
+        ({"pattern_m": (0.1, -0.2)}, "pattern_m"),
+        ({"rounds": 0}, "rounds"),
+        ({"max_steps": 0}, "max_steps"),
+    ],
+)
+def test_ple_plus_bad_search_settings_name_the_argument(kwargs, name):
+    az, r, r_max = office_scan(7, n=90)
+    rays = make_rays(az, r, r_max)
+    ple = extract_polylines(rays, max_vertices=8)
+    with pytest.raises(ValueError, match=name):
+        optimize_polylines(ple, rays, **kwargs)

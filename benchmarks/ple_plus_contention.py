@@ -7,7 +7,9 @@ timed with ``block_until_ready``. "loaded" starts two ``while True: pass`` proce
 the duration of the subprocess (always stopped). The 1-minute load average is recorded
 before each condition. Writes ``benchmarks/results/ple_plus_contention.json``.
 
-Usage: ``python benchmarks/ple_plus_contention.py [--scans N]``.
+Usage: ``python benchmarks/ple_plus_contention.py [--scans N] [--thorough]``
+(``--thorough``: the experiment's search, ``rounds=10, restarts=4``; written to
+``ple_plus_contention_thorough.json``).
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ WORKER = r"""
 import json, sys, time
 pin = sys.argv[1] == "pinned"
 n = int(sys.argv[2])
+kw = json.loads(sys.argv[3])
 import lidarjax
 if pin:
     lidarjax.pin_to_one_core()
@@ -42,15 +45,15 @@ for s in range(0, 40 * n, 40):
     r = np.minimum(log.ranges_m[s], rmax)
     rays = from_scan(jaxlie.SE2.identity(), log.azimuths_rad, r, 0.0, rmax)
     ple = F.extract_polylines(rays, max_vertices=50, l_max_m=1.0, d_rm_m=0.5, closed=False)
-    jax.block_until_ready(F.optimize_polylines(ple, rays).map.vertices)  # warm-up
+    jax.block_until_ready(F.optimize_polylines(ple, rays, **kw).map.vertices)  # warm-up
     t = time.perf_counter()
-    jax.block_until_ready(F.optimize_polylines(ple, rays).map.vertices)
+    jax.block_until_ready(F.optimize_polylines(ple, rays, **kw).map.vertices)
     times.append(time.perf_counter() - t)
 print(json.dumps(times))
 """
 
 
-def run(pin: str, loaded: bool, n: int) -> dict:
+def run(pin: str, loaded: bool, n: int, kw: dict) -> dict:
     load_before = os.getloadavg()[0]
     burners = []
     try:
@@ -60,7 +63,8 @@ def run(pin: str, loaded: bool, n: int) -> dict:
             ]
             time.sleep(1.0)
         out = subprocess.run(
-            [sys.executable, "-c", WORKER, pin, str(n)], capture_output=True, text=True,
+            [sys.executable, "-c", WORKER, pin, str(n), json.dumps(kw)], capture_output=True,
+            text=True,
             timeout=3600,
         )  # fmt: skip
     finally:
@@ -84,16 +88,23 @@ def run(pin: str, loaded: bool, n: int) -> dict:
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scans", type=int, default=8)
+    ap.add_argument(
+        "--thorough", action="store_true",
+        help="the experiment's search (rounds=10, restarts=4) instead of the defaults",
+    )  # fmt: skip
     args = ap.parse_args(argv)
+    kw = {"rounds": 10, "restarts": 4} if args.thorough else {}
     rows = []
     for loaded in (False, True):
         for pin in ("unpinned", "pinned"):
-            rows.append(run(pin, loaded, args.scans))
+            rows.append(run(pin, loaded, args.scans, kw))
             r = rows[-1]
             print(f"{'loaded' if loaded else 'idle':6s} {pin:8s} load {r['load_1min_before']:.2f}: "
                   f"median {r['median_s']:.3f} s, max {r['max_s']:.3f} s", flush=True)  # fmt: skip
     OUT.parent.mkdir(parents=True, exist_ok=True)
-    OUT.write_text(json.dumps({"cpu_count": os.cpu_count(), "rows": rows}, indent=2) + "\n")
+    out = OUT.with_name(OUT.stem + ("_thorough" if args.thorough else "") + ".json")
+    res = {"cpu_count": os.cpu_count(), "optimize_polylines_kwargs": kw, "rows": rows}
+    out.write_text(json.dumps(res, indent=2) + "\n")
 
 
 if __name__ == "__main__":

@@ -779,6 +779,12 @@ class PolylineExample:
 
 
 @dataclass
+class PlePlus:
+    rounds: int = _f(count)
+    restarts: int = _f(nonnegative)
+
+
+@dataclass
 class PolylinesConfig:
     """``configs/polylines.yaml``."""
 
@@ -792,6 +798,7 @@ class PolylinesConfig:
     l_max_m: float = _f(positive)
     d_rm_m: float = _f(nonnegative)
     methods: list[str] = MISSING
+    ple_plus: PlePlus = _node(PlePlus)
     simulation: PolylineSimulation = _node(PolylineSimulation)
     timing_J: list[int] = _f(unique, each=count)
     timing_scans: int = _f(count)

@@ -204,6 +204,11 @@ def sim_dataset(cfg, n_scans: int) -> Dataset:
 # ----------------------------------------------------------------------------- methods
 
 
+def _plus_kw(cfg) -> dict:
+    """``optimize_polylines`` keyword arguments from ``cfg.ple_plus``."""
+    return {"rounds": int(cfg.ple_plus.rounds), "restarts": int(cfg.ple_plus.restarts)}
+
+
 def _index(tree, i):
     return jax.tree.map(lambda x: x[i], tree)
 
@@ -235,7 +240,7 @@ def run_all(ds: Dataset, J: int, cfg) -> dict:
     ple = F.extract_polylines(
         ds.rays, max_vertices=J, l_max_m=cfg.l_max_m, d_rm_m=cfg.d_rm_m, closed=ds.closed
     )
-    plus = F.optimize_polylines(ple, ds.rays)
+    plus = F.optimize_polylines(ple, ds.rays, **_plus_kw(cfg))
     expected = {
         "PLE": np.asarray(ple.map.expected_ranges(ds.rays)),
         "PLE+": np.asarray(plus.map.expected_ranges(ds.rays)),
@@ -320,7 +325,7 @@ def time_methods(ds: Dataset, J: int, n_scans: int, cfg) -> dict:
         )
 
     def ple_plus(r):
-        return F.optimize_polylines(ple(r), r)
+        return F.optimize_polylines(ple(r), r, **_plus_kw(cfg))
 
     times = {m: [] for m in METHODS}
     scans = list(range(min(n_scans, ds.n)))
@@ -376,8 +381,9 @@ def nelder_mead_vs_lm(ds: Dataset, cfg) -> list[dict]:
         rays = ds.scan_rays(i)
         ple = F.extract_polylines(rays, max_vertices=int(nm.J), l_max_m=cfg.l_max_m,
                                   d_rm_m=cfg.d_rm_m, closed=ds.closed)  # fmt: skip
-        t_lm, plus = _timed(F.optimize_polylines, ple, rays)
-        t_lm, plus = _timed(F.optimize_polylines, ple, rays)  # warm
+        kw = _plus_kw(cfg)
+        t_lm, plus = _timed(lambda: F.optimize_polylines(ple, rays, **kw))
+        t_lm, plus = _timed(lambda: F.optimize_polylines(ple, rays, **kw))  # warm
         chains, closed = ple.map.to_chains()
         v0 = np.asarray(ple.map.vertices)
         refl = ds.reflected[i]

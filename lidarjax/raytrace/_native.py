@@ -65,9 +65,7 @@ def _load() -> bool:
             lib = ctypes.CDLL(str(_build.LIBRARY))
             isa = os.environ.get("LIDARJAX_NATIVE_ISA", "auto")
             if isa not in ("auto", "baseline", "avx2"):
-                raise ValueError(
-                    f"LIDARJAX_NATIVE_ISA must be auto, baseline or avx2, got {isa!r}"
-                )
+                raise ValueError(f"LIDARJAX_NATIVE_ISA must be auto, baseline or avx2, got {isa!r}")
             has_avx2 = bool(lib.lidarjax_cpu_has_avx2())
             if isa == "avx2" and not has_avx2:
                 raise OSError("LIDARJAX_NATIVE_ISA=avx2 but this CPU has no AVX2")

@@ -211,7 +211,7 @@ def test_ple_plus_never_worse_than_ple_on_the_shared_logs():
     ``scans: random`` (``configs/polylines.yaml``: seed, logs, ``scans_per_log``, ``J``,
     ``l_max_m``, ``d_rm_m``; the scans on which the old PLE+ regressed were found there):
     the ``REGRESSED`` ones, then seeded random ones, so every log and every J is covered
-    within the time budget (PLE+ with its restarts costs about 3 s per 2 scans and J).
+    within the time budget.
 
     Round-off allowance: the reported and brute-force errors sum the same squared residuals
     computed in a different order and formula (2x2 solve vs cross products); they differ by

@@ -823,6 +823,13 @@ def _true_sse(m: PolylineMap, sc: _Scan):
     return jnp.sum(d2), hit
 
 
+def _predecessors(succ: Array) -> Array:
+    """``[n]`` predecessor of each slot from the successor links ``succ`` (``-1``: none)."""
+    n = succ.shape[0]
+    idx = jnp.arange(n, dtype=jnp.int32)
+    return jnp.full(n, -1, jnp.int32).at[jnp.where(succ >= 0, succ, n)].set(idx, mode="drop")
+
+
 def _component_labels(succ_p: Array, real: Array) -> Array:
     """Label each parameter slot with the smallest slot of its polyline (``[n]``).
 
@@ -830,10 +837,8 @@ def _component_labels(succ_p: Array, real: Array) -> Array:
     cycles, so pointer doubling in both directions reaches every slot of a polyline in
     ``ceil(log2 n)`` steps (a static, bounded loop)."""
     n = succ_p.shape[0]
-    idx = jnp.arange(n, dtype=jnp.int32)
-    pred_p = jnp.full(n, -1, jnp.int32).at[jnp.where(succ_p >= 0, succ_p, n)].set(idx, mode="drop")
-    lab = jnp.where(real, idx, n)
-    fwd, bwd = succ_p, pred_p
+    lab = jnp.where(real, jnp.arange(n, dtype=jnp.int32), n)
+    fwd, bwd = succ_p, _predecessors(succ_p)
     for _ in range(max(1, int(np.ceil(np.log2(max(n, 2)))))):
         lab = jnp.minimum(lab, jnp.where(fwd >= 0, lab[jnp.clip(fwd, 0, n - 1)], n))
         lab = jnp.minimum(lab, jnp.where(bwd >= 0, lab[jnp.clip(bwd, 0, n - 1)], n))
@@ -860,12 +865,7 @@ def _plus_one(m: PolylineMap, sc: _Scan, solver, n_params: int, cfg: _PlusSettin
     k = m.vertices.shape[0]
     act = m.active
     succ = jnp.where(act, m.successor, -1)
-    pred = (
-        jnp.full(k, -1, jnp.int32)
-        .at[jnp.where(succ >= 0, succ, k)]
-        .set(jnp.arange(k, dtype=jnp.int32), mode="drop")
-    )
-    is_end = act & ((succ < 0) | (pred < 0))
+    is_end = act & ((succ < 0) | (_predecessors(succ) < 0))
     # compact the active slots into n_params parameter slots (static shape, padded)
     slot = jnp.nonzero(act, size=n_params, fill_value=0)[0]
     real = jnp.arange(n_params) < jnp.sum(act)
@@ -880,8 +880,17 @@ def _plus_one(m: PolylineMap, sc: _Scan, solver, n_params: int, cfg: _PlusSettin
     succ_p = jnp.where(real & (succ[slot] >= 0), param_of[jnp.clip(succ[slot], 0, k - 1)], -1)
     seg_ok = succ_p >= 0
     # the polyline of each parameter slot: the blocks whose steps are accepted separately
+    pred_p = _predecessors(succ_p)
+    nxt = jnp.clip(succ_p, 0, n_params - 1)
     block = _component_labels(succ_p, real)
     origins = jnp.broadcast_to(sc.origin, sc.dirs.shape)
+
+    def seg_t(a, b):
+        """``[K S]``: distance along each ray to each segment ``a -> b`` (``inf``: none)."""
+        t = jax.vmap(jax.vmap(ray_segment, in_axes=(None, None, 0, 0)), in_axes=(0, 0, None, None))(
+            origins, sc.dirs, a, b
+        )
+        return jnp.where(seg_ok[None, :], t, jnp.inf)
 
     def positions(y):
         # end vertices move along the ray of their slot: vertex = origin + t * dir
@@ -905,10 +914,7 @@ def _plus_one(m: PolylineMap, sc: _Scan, solver, n_params: int, cfg: _PlusSettin
     def block_hits(p):
         """``[K B]``: per ray, the distance to the nearest segment of each polyline
         (``inf``: none), for the parameter positions ``p`` ``[n_params 2]``."""
-        t = jax.vmap(jax.vmap(ray_segment, in_axes=(None, None, 0, 0)), in_axes=(0, 0, None, None))(
-            origins, sc.dirs, p, p[jnp.clip(succ_p, 0, n_params - 1)]
-        )  # [K S]
-        t = jnp.where(seg_ok[None, :], t, jnp.inf)
+        t = seg_t(p, p[nxt])  # [K S]
         return jax.ops.segment_min(t.T, block, num_segments=n_params).T, t
 
     def error_of(t):
@@ -1002,19 +1008,6 @@ def _plus_one(m: PolylineMap, sc: _Scan, solver, n_params: int, cfg: _PlusSettin
         # per vertex: vertex v moved by fraction f, all others as they are. Only its two
         # segments change: (pred v -> v) with its end moved, (v -> succ v) with its start
         # moved; the rest is the nearest of the unchanged segments other than those two.
-        pred_p = (
-            jnp.full(n_params, -1, jnp.int32)
-            .at[jnp.where(succ_p >= 0, succ_p, n_params)]
-            .set(jnp.arange(n_params, dtype=jnp.int32), mode="drop")
-        )
-        nxt = jnp.clip(succ_p, 0, n_params - 1)
-
-        def seg_t(a, b):  # [K S]
-            t = jax.vmap(
-                jax.vmap(ray_segment, in_axes=(None, None, 0, 0)), in_axes=(0, 0, None, None)
-            )(origins, sc.dirs, a, b)
-            return jnp.where(seg_ok[None, :], t, jnp.inf)
-
         # per-vertex trials: the LM step fractions, then pattern moves of fixed lengths
         # along the vertex's ray and across it (end vertices: along their ray only), which
         # let a vertex leave a local minimum of the fixed-association surrogate

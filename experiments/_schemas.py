@@ -848,14 +848,14 @@ class PolylinesConfig:
 
 @dataclass
 class PpeGrid:
-    d: list[float] = _f(nonempty, each=positive)  # m
+    max_distance_m: list[float] = _f(nonempty, each=positive)  # extract_planes' d (m)
     kappa: list[Any] = _f(nonempty, each=positive)  # numbers (ints kept as ints)
     min_points: list[int] = _f(nonempty, each=count)
 
 
 @dataclass
 class PpeDefault:
-    d: float = _f(positive)  # m
+    max_distance_m: float = _f(positive)  # extract_planes' d (m)
     min_points: int = _f(ge(4))
 
 
@@ -869,7 +869,7 @@ PLANE_PARTS = ("table", "noise")
 """Parts of ``experiments/planes.py`` (``parts``)."""
 
 PLANE_SPLIT_SIZES = {"train": 10, "test": 30}
-"""Scans in the generated SynPEB-style splits (``lidarjax.datasets.synpeb_split``)."""
+"""Scans in the generated SynPEB-style splits (``lidarjax.sim.synpeb_split``)."""
 
 
 @dataclass
@@ -880,7 +880,7 @@ class NoiseTable:
     noise_levels_mm: list[float] = _f(each=nonnegative)  # radial sigma (mm)
     angular_sigma_mdeg: float = _f(nonnegative)
     extra_conditions: list[Any] = MISSING  # [radial mm, angular mdeg] pairs, checked below
-    ppe_rows: list[Any] = MISSING  # {name, d, min_points, e | kappa}, checked below
+    ppe_rows: list[Any] = MISSING  # {name, max_distance_m, min_points, max_increment | kappa}
     baselines: bool = MISSING
 
 
@@ -904,27 +904,30 @@ def _check_noise_table(problems, nt) -> None:
         )
     rows = _plain(nt.ppe_rows)
     names = []
+    shape = "{name, max_distance_m, min_points, max_increment | kappa}"
     for i, row in enumerate(rows):
         k = f"{key}.ppe_rows[{i}]"
         if not isinstance(row, dict):
-            problems.append((k, row, "must be a mapping {name, d, min_points, e | kappa}"))
+            problems.append((k, row, f"must be a mapping {shape}"))
             continue
         names.append(row.get("name"))
-        want = {"name", "d", "min_points"}
-        thr = [t for t in ("e", "kappa") if t in row]
-        if not want <= set(row) or len(thr) != 1 or set(row) - want - {"e", "kappa"}:
-            problems.append((k, row, "needs exactly name, d, min_points and one of e, kappa"))
+        want = {"name", "max_distance_m", "min_points"}
+        either = {"max_increment", "kappa"}
+        thr = [t for t in ("max_increment", "kappa") if t in row]
+        if not want <= set(row) or len(thr) != 1 or set(row) - want - either:
+            problems.append((k, row, f"needs exactly the keys {shape}"))
             continue
         if not isinstance(row["name"], str) or not row["name"]:
             problems.append((f"{k}.name", row["name"], "must be a non-empty string"))
-        for sub, check in (("d", positive), ("min_points", ge(4))):
+        for sub, check in (("max_distance_m", positive), ("min_points", ge(4))):
             why = check(row[sub])
             if why:
                 problems.append((f"{k}.{sub}", row[sub], why))
         if "kappa" in row and positive(row["kappa"]):
             problems.append((f"{k}.kappa", row["kappa"], positive(row["kappa"])))
-        if "e" in row and row["e"] != "auto" and nonnegative(row["e"]):
-            problems.append((f"{k}.e", row["e"], "must be 'auto' or a number >= 0 (m²)"))
+        inc = row.get("max_increment")
+        if "max_increment" in row and inc != "auto" and nonnegative(inc):
+            problems.append((f"{k}.max_increment", inc, "must be 'auto' or a number >= 0 (m²)"))
     if unique(names):
         problems.append((f"{key}.ppe_rows", names, "names " + unique(names)))
 
@@ -989,9 +992,9 @@ class PlanesConfig:
                     (f"{name}.fixed.{k}", fixed[k], f"also in {name}.grid (it would overwrite it)")
                 )
         tuned = OmegaConf.to_container(cfg.tuned, resolve=True) if cfg.tuned else {}
-        allowed = {
-            "PPE": {"d", "kappa", "min_points"},
-            "PPE_abs": {"d", "e", "min_points"},
+        allowed = {  # PPE: extract_planes' keywords (kappa: max_increment = kappa sigma_hat²)
+            "PPE": {"max_distance_m", "kappa", "min_points"},
+            "PPE_abs": {"max_distance_m", "max_increment", "min_points"},
             "MSAC": None,
             "PEAC": None,
         }

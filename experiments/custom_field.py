@@ -81,21 +81,14 @@ def rbf_field_like(
 def patch_rays(name: str, n_rays: int, *, size: float = 10.0, seed: int = 0):
     """``(train, test, lower)``: up to ``n_rays`` HIT rays each from even / odd scans that
     end in the ``size`` x ``size`` m patch with the most end points (1 m aligned)."""
-    import jaxlie
+    from _common import scan_rays
     from dct_maps import densest_patch
 
     from lidarjax.datasets import fetch, load_carmen
-    from lidarjax.rays import HIT, RayBatch, from_scan
+    from lidarjax.rays import HIT, RayBatch
 
     log = load_carmen(fetch(name))
-    p = log.poses
-    rays = from_scan(
-        jaxlie.SE2.from_xy_theta(p[:, 0], p[:, 1], p[:, 2]),
-        log.azimuths_rad,
-        log.ranges_m,
-        0.0,
-        log.usable_range_m,
-    )
+    rays = scan_rays(log, None, 0.0, log.usable_range_m)
     ends = np.asarray(rays.origins + rays.ranges[..., None] * rays.directions)
     hit = np.asarray(rays.kind) == HIT
     lo = densest_patch(ends[hit], size)  # the patch of experiments/dct_maps.py

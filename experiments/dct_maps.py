@@ -29,7 +29,6 @@ Writes ``results.json`` (after every log), ``results.md``, ``dct_maps.png`` (Fig
 
 from __future__ import annotations
 
-import json
 import time
 import zlib
 from pathlib import Path
@@ -43,8 +42,8 @@ import jax.numpy as jnp  # noqa: E402
 import jaxlie  # noqa: E402
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+from _common import output_dir, scan_rays, write_results  # noqa: E402
 from _schemas import validate  # noqa: E402
-from hydra.core.hydra_config import HydraConfig  # noqa: E402
 from omegaconf import DictConfig, OmegaConf  # noqa: E402
 from scipy import stats  # noqa: E402
 from tqdm import tqdm  # noqa: E402
@@ -53,7 +52,7 @@ from lidarjax import maps  # noqa: E402
 from lidarjax.datasets import fetch, load_carmen  # noqa: E402
 from lidarjax.localization.refine import refine_dct_scan_pose  # noqa: E402
 from lidarjax.maps import baselines  # noqa: E402
-from lidarjax.rays import HIT, RayBatch, from_scan  # noqa: E402
+from lidarjax.rays import HIT, RayBatch  # noqa: E402
 from lidarjax.raytrace import GridSpec, accumulate  # noqa: E402
 from lidarjax.sensor_models import (  # noqa: E402
     decay_rate_log_likelihood,
@@ -127,13 +126,7 @@ def evaluate_log(name: str, cfg: DictConfig, figs: dict) -> dict:
     p = log.poses
     size = float(cfg.patch_m)
     ext = np.array([size, size])
-    all_rays = from_scan(
-        jaxlie.SE2.from_xy_theta(p[:, 0], p[:, 1], p[:, 2]),
-        log.azimuths_rad,
-        log.ranges_m,
-        cfg.r_min_m,
-        log.usable_range_m,
-    )
+    all_rays = scan_rays(log, None, cfg.r_min_m, log.usable_range_m)
     n_b = log.ranges_m.shape[1]
     flat = all_rays.flatten()
     kind = np.asarray(flat.kind)
@@ -471,7 +464,7 @@ def plot_figures(figs, cfg, out: Path):
 def main(cfg: DictConfig) -> dict:
     validate(cfg, "dct_maps")
     jax.config.update("jax_enable_x64", bool(cfg.x64))
-    out = Path(HydraConfig.get().runtime.output_dir)
+    out = output_dir()
     t0 = time.perf_counter()
     rows, figs = [], {}
     summ = {}
@@ -485,12 +478,11 @@ def main(cfg: DictConfig) -> dict:
             "summary": summ,
             "total_s": time.perf_counter() - t0,
         }
-        (out / "results.json").write_text(json.dumps(results, indent=2))
+        write_results(out, results=results)
     total = time.perf_counter() - t0
     md = markdown(rows, summ, cfg, total)
-    (out / "results.md").write_text(md)
+    write_results(out, markdown=md, cfg=cfg)
     plot_figures(figs, cfg, out)
-    (out / "config.yaml").write_text(OmegaConf.to_yaml(cfg))
     print(md)
     return results
 

@@ -35,7 +35,6 @@ resolutions=[10,20]``.
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 
@@ -47,9 +46,9 @@ matplotlib.use("Agg")
 import jax.numpy as jnp  # noqa: E402
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+from _common import output_dir, write_results  # noqa: E402
 from _schemas import validate  # noqa: E402
 from custom_field import RBFField, held_out, patch_rays, rbf_field_like  # noqa: E402
-from hydra.core.hydra_config import HydraConfig  # noqa: E402
 from omegaconf import DictConfig, OmegaConf  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
@@ -255,7 +254,7 @@ def plot_figures(figs: dict, summ: dict, cfg: DictConfig, out: Path) -> None:
 def main(cfg: DictConfig) -> dict:
     validate(cfg, "decay_rate_fields")
     jax.config.update("jax_enable_x64", bool(cfg.x64))
-    out = Path(HydraConfig.get().runtime.output_dir)
+    out = output_dir()
     t0 = time.perf_counter()
     rows, figs, summ, results = [], {}, {}, {}
     for name in (bar := tqdm(list(cfg.logs), desc="logs", unit="log")):
@@ -271,12 +270,11 @@ def main(cfg: DictConfig) -> dict:
             "summary": summ,
             "total_s": time.perf_counter() - t0,
         }
-        (out / "results.json").write_text(json.dumps(results, indent=2))
+        write_results(out, results=results)
     total = time.perf_counter() - t0
     md = markdown(rows, summ, cfg, total)
-    (out / "results.md").write_text(md)
+    write_results(out, markdown=md, cfg=cfg)
     plot_figures(figs, summ, cfg, out)
-    (out / "config.yaml").write_text(OmegaConf.to_yaml(cfg))
     print(md)
     return results
 

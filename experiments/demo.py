@@ -7,22 +7,20 @@ Writes ``grid_stats.png``, ``results.json`` and ``results.md`` into Hydra's outp
 
 from __future__ import annotations
 
-import json
 import time
-from pathlib import Path
 
 import hydra
 import jax
 import jaxlie
 import numpy as np
+from _common import output_dir, write_results
 from _schemas import validate
-from hydra.core.hydra_config import HydraConfig
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
-from lidarjax.datasets import make_office, simulate_scans
 from lidarjax.plot import plot_grid_stats
 from lidarjax.rays import from_scan
 from lidarjax.raytrace import GridSpec, accumulate
+from lidarjax.sim import make_office, simulate_scans
 
 
 def point_segment_distance(points: np.ndarray, segments: np.ndarray) -> np.ndarray:
@@ -37,7 +35,7 @@ def point_segment_distance(points: np.ndarray, segments: np.ndarray) -> np.ndarr
 @hydra.main(config_path="../configs", config_name="demo", version_base=None)
 def main(cfg: DictConfig) -> dict:
     validate(cfg, "demo")
-    out = Path(HydraConfig.get().runtime.output_dir)
+    out = output_dir()
     world = make_office(cfg.seed, width_m=cfg.world.width_m, height_m=cfg.world.height_m)
     poses = world.trajectory(cfg.scans.n_poses, jitter_m=0.3, seed=cfg.seed)
     fov = np.radians(cfg.scans.fov_deg)
@@ -93,7 +91,7 @@ def main(cfg: DictConfig) -> dict:
     title = f"synthetic office (seed {cfg.seed}): {rays.n} rays, {cfg.grid.resolution_m} m cells"
     fig = plot_grid_stats(stats, segments=world.segments, poses=poses, title=title)
     fig.savefig(out / "grid_stats.png", dpi=110)
-    (out / "results.json").write_text(json.dumps(results, indent=2))
+    write_results(out, results=results)
     near_pct = 100 * results["hits_near_true_walls_fraction"]
     rate = results["accumulate_rays_per_s"]
     rows = [
@@ -105,8 +103,7 @@ def main(cfg: DictConfig) -> dict:
         ("accumulate (first call, incl. compile)", f"{t_first:.2f} s"),
     ]
     table = "| quantity | value |\n|---|---|\n" + "".join(f"| {a} | {b} |\n" for a, b in rows)
-    (out / "results.md").write_text(table)
-    (out / "config.yaml").write_text(OmegaConf.to_yaml(cfg))
+    write_results(out, markdown=table, cfg=cfg)
     print(table)
     print(f"wrote {out / 'grid_stats.png'}, {out / 'results.json'}, {out / 'results.md'}")
     return results

@@ -26,7 +26,6 @@ E.g. ``python experiments/mcl.py logs=[intel] filter.runs=2 filter.max_steps=20`
 
 from __future__ import annotations
 
-import json
 import time
 import zlib
 from pathlib import Path
@@ -41,19 +40,25 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+from _common import (  # noqa: E402
+    even_odd_scans,
+    fmt,
+    grid_model,
+    mapping_stats,
+    output_dir,
+    run_info,
+    write_results,
+)
 from _schemas import validate  # noqa: E402
-from hydra.core.hydra_config import HydraConfig  # noqa: E402
 from omegaconf import DictConfig, OmegaConf  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from lidarjax import localization as loc  # noqa: E402
-from lidarjax import maps  # noqa: E402
 from lidarjax.datasets import fetch, load_carmen  # noqa: E402
 from lidarjax.localization.refine import refine_scan_pose, smooth_fields  # noqa: E402
-from lidarjax.rays import HIT, from_scan  # noqa: E402
-from lidarjax.raytrace import GridSpec, accumulate  # noqa: E402
+from lidarjax.raytrace import GridSpec  # noqa: E402
 
-NAMES = {
+NAMES = {  # the GRID_MODELS and their table labels
     "dec": "Decay-rate",
     "ref": "Reflection",
     "end": "Endpoint",
@@ -62,54 +67,10 @@ NAMES = {
 }
 
 
-def build_stats(log, cfg: DictConfig, r_min: float, r_max: float):
-    """Grid statistics of the even-numbered scans at their corrected poses, the grid, and
-    the endpoint model's ``p_out`` (``auto``: fraction of out-of-range mapping rays)."""
-    idx = np.arange(0, log.n_scans, 2)
-    p = log.poses[idx]
-    rays = from_scan(
-        jaxlie.SE2.from_xy_theta(p[:, 0], p[:, 1], p[:, 2]),
-        log.azimuths_rad,
-        log.ranges_m[idx],
-        r_min,
-        r_max,
-    )
-    th = log.poses[:, 2:3] + log.azimuths_rad
-    ends = log.poses[:, None, :2] + log.ranges_m[..., None] * np.stack([np.cos(th), np.sin(th)], -1)
-    pts = np.concatenate([ends[log.ranges_m < r_max], log.poses[:, :2]])
-    spec = GridSpec.covering(pts, float(cfg.grid.resolution_m), margin=float(cfg.grid.margin_m))
-    stats = accumulate(spec, rays)
-    p_out = cfg.endpoint.p_out
-    if p_out == "auto":
-        p_out = float(np.clip((np.asarray(rays.kind) != HIT).mean(), 1e-3, 0.5))
-    return stats, spec, float(p_out)
-
-
-def model_from_stats(name: str, stats, cfg: DictConfig, p_out: float):
-    """One grid model (``dec``, ``ref``, ``end``, ``fmp_dec``, ``fmp_ref``) from stats."""
-    if name == "dec":
-        return maps.decay_rate_map(stats)
-    if name == "ref":
-        return maps.reflection_map(stats)
-    if name == "end":
-        return maps.endpoint_map(
-            stats,
-            sigma_m=float(cfg.endpoint.sigma_m),
-            z_hit=float(cfg.endpoint.z_hit),
-            z_rand=float(cfg.endpoint.z_rand),
-            p_out=p_out,
-        )
-    if name == "fmp_dec":
-        return maps.gamma_posterior(stats)
-    if name == "fmp_ref":
-        return maps.beta_posterior(stats)
-    raise ValueError(f"unknown model {name!r}; choose from {sorted(NAMES)}")
-
-
 def build_maps(log, cfg: DictConfig, r_min: float, r_max: float) -> tuple[dict, GridSpec]:
     """All grid models from the even-numbered scans at their corrected poses."""
-    stats, spec, p_out = build_stats(log, cfg, r_min, r_max)
-    return {m: model_from_stats(m, stats, cfg, p_out) for m in NAMES}, spec
+    stats, spec, p_out = mapping_stats(log, cfg, r_min, r_max)
+    return {m: grid_model(m, stats, cfg, p_out) for m in NAMES}, spec
 
 
 def initial_states(key, start_pose: np.ndarray, cfg: DictConfig):
@@ -235,7 +196,7 @@ def prepare(name: str, cfg: DictConfig, failures: bool = False):
     Returns ``(log, r_min, r_max, azimuths, seq, key)``."""
     log = load_carmen(fetch(name))
     r_min, r_max = float(cfg.r_min_m), float(log.usable_range_m)
-    odd = np.arange(1, log.n_scans, 2)[: int(cfg.filter.max_steps) + 1]
+    odd = even_odd_scans(log.n_scans)[1][: int(cfg.filter.max_steps) + 1]
     beams = np.unique(np.round(np.linspace(0, log.n_beams - 1, int(cfg.filter.n_beams))))
     beams = beams.astype(int)
     az = jnp.asarray(log.azimuths_rad[beams])
@@ -296,10 +257,6 @@ def evaluate_log(name: str, cfg: DictConfig, failures: bool = False) -> dict:
     return out, curves, seq["gt"]
 
 
-def _fmt(x, digits=3):
-    return "–" if x is None else f"{x:.{digits}f}"
-
-
 def write_tables(results: dict, models: list[str]) -> str:
     ch7 = [m for m in ("dec", "ref", "end") if m in models]
     lines = [
@@ -314,7 +271,7 @@ def write_tables(results: dict, models: list[str]) -> str:
         n = len(v["per_run_pos_err_m"])
         return (
             f"{v['pos_err_m']:.3f} ({v['head_err_deg']:.1f}); {v['converged_runs']}/{n}: "
-            f"{_fmt(v['pos_err_converged_runs_m'])}"
+            f"{fmt(v['pos_err_converged_runs_m'])}"
         )
 
     for name, r in results.items():
@@ -346,7 +303,7 @@ def write_tables(results: dict, models: list[str]) -> str:
             f = r["refine"]
             lines.append(
                 f"| {name} | {f['filter_pos_err']:.3f} | {f['refined_pos_err']:.3f} | "
-                f"{_fmt(f['filter_pos_err_converged'])} | {_fmt(f['refined_pos_err_converged'])} "
+                f"{fmt(f['filter_pos_err_converged'])} | {fmt(f['refined_pos_err_converged'])} "
                 f"| {100 * f['improved_fraction']:.0f} % |"
             )
     return "\n".join(lines) + "\n"
@@ -402,8 +359,7 @@ def plot(curves: dict, gts: dict, out: Path) -> None:
 @hydra.main(config_path="../configs", config_name="mcl", version_base=None)
 def main(cfg: DictConfig) -> None:
     validate(cfg, "mcl")
-    out = Path(HydraConfig.get().runtime.output_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    out = output_dir()
     models = list(cfg.models)
     unknown = set(models) - set(NAMES)
     if unknown:
@@ -434,8 +390,7 @@ def write_outputs(out: Path, cfg, models, results, curves, gts, runtime_s: float
         "config": OmegaConf.to_container(cfg, resolve=True),
         "logs": results,
         "runtime_s": runtime_s,
-        "jax_version": jax.__version__,
-        "dtype": str(jnp.result_type(float)),
+        **run_info(),
     }
     ch7 = [m for m in ("dec", "ref", "end") if m in models]
     summary["mean_over_logs_pos_err_m"] = {
@@ -451,8 +406,7 @@ def write_outputs(out: Path, cfg, models, results, curves, gts, runtime_s: float
             )
             for m in ch7
         }
-    (out / "results.json").write_text(json.dumps(summary, indent=2))
-    (out / "results.md").write_text(write_tables(results, models))
+    write_results(out, results=summary, markdown=write_tables(results, models))
     plot(curves, gts, out)
 
 

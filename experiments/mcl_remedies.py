@@ -24,7 +24,6 @@ E.g. ``python experiments/mcl_remedies.py logs=[intel] filter.runs=2 filter.max_
 
 from __future__ import annotations
 
-import json
 import os
 import time
 from pathlib import Path
@@ -39,17 +38,9 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+from _common import fmt, grid_model, mapping_stats, output_dir, run_info, write_results  # noqa: E402
 from _schemas import INITS, VARIANT_KEYS, validate  # noqa: E402
-from hydra.core.hydra_config import HydraConfig  # noqa: E402
-from mcl import (  # noqa: E402
-    NAMES,
-    build_stats,
-    error_grid,
-    initial_states,
-    model_from_stats,
-    prepare,
-    wrap,
-)
+from mcl import NAMES, error_grid, initial_states, prepare, wrap  # noqa: E402
 from omegaconf import DictConfig, OmegaConf  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
@@ -99,7 +90,7 @@ class MapCache:
             s = float(smoothing_m)
             if s not in self._smoothed:
                 self._smoothed[s] = maps.smooth_stats(self.stats, s)
-            self._models[key] = model_from_stats(model, self._smoothed[s], self.cfg, self.p_out)
+            self._models[key] = grid_model(model, self._smoothed[s], self.cfg, self.p_out)
         return self._models[key]
 
 
@@ -343,10 +334,6 @@ def run_variant(v: dict, cache: MapCache, az, seq, key, cfg, r_min, r_max, runs:
 # --------------------------------------------------------------------------------------
 
 
-def _fmt(x, d=3):
-    return "–" if x is None else f"{x:.{d}f}"
-
-
 def write_tables(results: dict, cfg) -> str:
     lines = []
     diag_models = list(cfg.diagnose.models)
@@ -385,7 +372,7 @@ def write_tables(results: dict, cfg) -> str:
             if x is None:
                 cells.append("")
                 continue
-            cells.append(f"{x['converged_runs']}/{x['runs']}: {_fmt(x['pos_err_converged_m'])}")
+            cells.append(f"{x['converged_runs']}/{x['runs']}: {fmt(x['pos_err_converged_m'])}")
             conv += x["converged_runs"]
             total += x["runs"]
             ms.append(x["ms_per_step"])
@@ -417,7 +404,7 @@ def write_tables(results: dict, cfg) -> str:
             if not r.get("global"):
                 continue
             cells = [
-                f"{x['converged_runs']}/{x['runs']}: {_fmt(x['pos_err_converged_m'])} "
+                f"{x['converged_runs']}/{x['runs']}: {fmt(x['pos_err_converged_m'])} "
                 f"({x['ms_per_step']:.0f} ms"
                 + (
                     f", init {x['init_seconds_per_run']:.0f} s)"
@@ -494,10 +481,9 @@ def write_outputs(out: Path, cfg, results, surfaces, runtime_s) -> None:
         "config": OmegaConf.to_container(cfg, resolve=True),
         "logs": results,
         "runtime_s": runtime_s,
-        "jax_version": jax.__version__,
+        **run_info(),
     }
-    (out / "results.json").write_text(json.dumps(summary, indent=2))
-    (out / "results.md").write_text(write_tables(results, cfg))
+    write_results(out, results=summary, markdown=write_tables(results, cfg))
     plot_surfaces(surfaces, out)
     plot_errors(results, out)
 
@@ -505,8 +491,7 @@ def write_outputs(out: Path, cfg, results, surfaces, runtime_s) -> None:
 @hydra.main(config_path="../configs", config_name="mcl_remedies", version_base=None)
 def main(cfg: DictConfig) -> None:
     validate(cfg, "mcl_remedies")
-    out = Path(HydraConfig.get().runtime.output_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    out = output_dir()
     variants = {k: _variant(v) for k, v in cfg.variants.items()}
     if cfg.only is not None:
         missing = set(cfg.only) - set(variants)
@@ -521,7 +506,7 @@ def main(cfg: DictConfig) -> None:
     for name in tqdm(list(cfg.logs), desc="logs"):
         t_log = time.perf_counter()
         log, r_min, r_max, az, seq, key = prepare(name, cfg)
-        stats, spec, p_out = build_stats(log, cfg, r_min, r_max)
+        stats, spec, p_out = mapping_stats(log, cfg, r_min, r_max)
         cache = MapCache(stats, cfg, p_out)
         res = {"load_average": os.getloadavg()[0], "grid_shape": list(spec.shape)}
         if cfg.diagnose.enabled:

@@ -4,7 +4,7 @@ and Figure 11.1 with PPE and the MSAC and PEAC-style baselines.
 Data:
 
 - (a) the shared real SynPEB crop ``synpeb/test_100.pcd`` (100 x 100 rays, 13 labels);
-- (b) the generated SynPEB-style test split (:func:`lidarjax.datasets.synpeb_split`, 30 scans
+- (b) the generated SynPEB-style test split (:func:`lidarjax.sim.synpeb_split`, 30 scans
   of 500 x 500 rays, 20 mm radial noise, 1 mdeg angular noise).
 
 Every method's parameters are chosen by grid search on the generated *training* split (10
@@ -13,7 +13,10 @@ as in the paper. PPE's threshold is searched as ``e = κ σ̂²`` with the scan'
 estimate :func:`lidarjax.features.estimate_noise`, so the tuned ``κ`` carries over to scans
 of another noise level (the shared crop has ~1 mm noise, the generated scans 20 mm); the
 table also lists PPE with the tuned absolute ``e``. One greedy run serves every ``κ``
-(:func:`lidarjax.features.extract_planes_path`).
+(:func:`lidarjax.features.extract_planes_path`). PPE's parameters in the config, ``tuned``
+and ``results.json`` carry :func:`lidarjax.features.extract_planes`' keyword names:
+``max_distance_m`` (``d``), ``max_increment`` (``e``, m² or ``"auto"``) and ``min_points``;
+``kappa`` stands for ``max_increment = κ σ̂²``.
 
 Metrics (:mod:`lidarjax.metrics`): Hoover et al. with T = 0.8 (``f`` = correct / ground-truth
 planes, over-, under-segmented, missed and spurious counts), ``k`` (Eq. 11.5) and the RMSE of
@@ -85,7 +88,7 @@ def _init_worker(x64: bool) -> None:
     jax.config.update("jax_enable_x64", bool(x64))
 
 
-# Scene / noise seeds of the generated splits (lidarjax.datasets.synpeb_scan): scan i of
+# Scene / noise seeds of the generated splits (lidarjax.sim.synpeb_scan): scan i of
 # "train" uses scene seed 1000 + i, of "test" 2000 + i; the noise seed adds 100000.
 SPLIT_SEED = {"train": 1000, "test": 2000}
 NOISE_SEED_OFFSET = 100_000
@@ -93,8 +96,8 @@ NOISE_SEED_OFFSET = 100_000
 
 def noise_scan(split: str, index: int, shape, radial_sigma_m: float, angular_sigma_deg: float):
     """Scan ``index`` of a generated split re-simulated at another noise level (same scene
-    and noise seeds; at 20 mm / 1 mdeg it is :func:`lidarjax.datasets.synpeb_scan`)."""
-    from lidarjax.datasets import make_synpeb_scene, simulate_synpeb_scan
+    and noise seeds; at 20 mm / 1 mdeg it is :func:`lidarjax.sim.synpeb_scan`)."""
+    from lidarjax.sim import make_synpeb_scene, simulate_synpeb_scan
 
     seed = SPLIT_SEED[split] + int(index)
     return simulate_synpeb_scan(
@@ -118,7 +121,8 @@ def _scan_path(entry: str) -> str:
 
 def _load(source: dict):
     """``(points [H W 3] m, gt labels [H W], SynPEBScan or None)`` of a job's scan."""
-    from lidarjax.datasets import fetch, load_synpeb_pcd, synpeb_scan
+    from lidarjax.datasets import fetch, load_synpeb_pcd
+    from lidarjax.sim import synpeb_scan
 
     if source["kind"] == "crop":
         points, labels = load_synpeb_pcd(fetch("synpeb-test-100"))
@@ -199,35 +203,41 @@ def _score(points, gt, labels, supports, normals, scan, min_gt_label: int = 1) -
 
 
 def _run_ppe(points, params_list, refit: bool):
-    """One greedy run per distinct (d, min_points), all thresholds from it (a path);
-    returns [(labels, supports, normals, seconds, sigma_hat, e)]."""
+    """One greedy run per distinct (max_distance_m, min_points), all thresholds from it (a
+    path); returns [(labels, supports, normals, seconds, sigma_hat, max_increment)].
+
+    Each parameter set holds ``extract_planes``' keywords ``max_distance_m`` and
+    ``min_points``, and either ``max_increment`` (m² or ``"auto"``) or ``kappa`` (then
+    ``max_increment = kappa * sigma_hat²``)."""
     from lidarjax.features import auto_max_increment, estimate_noise, extract_planes_path
 
     groups: dict = {}
     for i, p in enumerate(params_list):
-        groups.setdefault((p["d"], p["min_points"]), []).append(i)
+        groups.setdefault((p["max_distance_m"], p["min_points"]), []).append(i)
     res = [None] * len(params_list)
     t0 = time.perf_counter()
     sigma = estimate_noise(points)
     t_sigma = time.perf_counter() - t0
-    # kappa: e = kappa sigma_hat²; e: an absolute threshold (m²) or "auto", the default rule
-    # of extract_planes (lidarjax.features.auto_max_increment)
+    # kappa: max_increment = kappa sigma_hat²; max_increment: an absolute threshold (m²) or
+    # "auto", the default rule of extract_planes (lidarjax.features.auto_max_increment)
     auto = None
-    if any(p.get("e") == "auto" for p in params_list):
+    if any(p.get("max_increment") == "auto" for p in params_list):
         t0 = time.perf_counter()
         auto = auto_max_increment(points)
         t_sigma += time.perf_counter() - t0
-    for (d, mp), idx in groups.items():
+    for (max_distance_m, min_points), idx in groups.items():
         incs = []
         for i in idx:
             p = params_list[i]
-            e = p["kappa"] * sigma**2 if "kappa" in p else p["e"]
-            incs.append(auto if e == "auto" else float(e))
+            inc = p["kappa"] * sigma**2 if "kappa" in p else p["max_increment"]
+            incs.append(auto if inc == "auto" else float(inc))
         t0 = time.perf_counter()
-        segs = extract_planes_path(points, incs, max_distance_m=d, min_points=mp, refit=refit)
+        segs = extract_planes_path(
+            points, incs, max_distance_m=max_distance_m, min_points=min_points, refit=refit
+        )
         dt = time.perf_counter() - t0 + t_sigma
-        for i, e, seg in zip(idx, incs, segs):
-            res[i] = (seg.labels, seg.supports, seg.normals, dt, sigma, e)
+        for i, inc, seg in zip(idx, incs, segs):
+            res[i] = (seg.labels, seg.supports, seg.normals, dt, sigma, inc)
     return res
 
 
@@ -256,9 +266,9 @@ def job(
     results = []
     if method == "PPE":
         runs = _run_ppe(points, params_list, refit)
-        for (labels, sup, nrm, dt, sigma, e), p in zip(runs, params_list):
+        for (labels, sup, nrm, dt, sigma, inc), p in zip(runs, params_list):
             s = _score(points, gt, labels, sup, nrm, scan, min_label)
-            s.update(seconds=dt, sigma_hat_m=sigma, e_m2=e, params=p)
+            s.update(seconds=dt, sigma_hat_m=sigma, max_increment=inc, params=p)
             if keep_labels:
                 s["labels"] = labels.tolist()
             results.append(s)
@@ -301,8 +311,8 @@ def _grid(spec: DictConfig) -> list[dict]:
 def _ppe_params(cfg) -> list[dict]:
     g = OmegaConf.to_container(cfg.ppe.grid, resolve=True)
     return [
-        dict(d=d, kappa=k, min_points=m)
-        for d, k, m in itertools.product(g["d"], g["kappa"], g["min_points"])
+        dict(max_distance_m=d, kappa=k, min_points=m)
+        for d, k, m in itertools.product(g["max_distance_m"], g["kappa"], g["min_points"])
     ]
 
 
@@ -328,7 +338,7 @@ def _summary(rows: list[dict]) -> dict:
         "n_pred",
         "seconds",
         "sigma_hat_m",
-        "e_m2",
+        "max_increment",
     )
     return {k: _mean([r.get(k) for r in rows]) for k in keys if any(k in r for r in rows)}
 
@@ -361,10 +371,10 @@ def _evaluate(run_all, groups: list[tuple[str, list[dict], dict]], desc: str) ->
     """Run every variant on every scan of every group in one batch of jobs.
 
     ``groups``: ``(key, sources, variants)`` with ``variants`` ``{name: (method, params)}``.
-    All PPE variants of a scan share one job (one greedy run per (d, min_points)); the
-    exactly refitted ground truth is one more job per scan. Returns ``{key: (part, figs)}``:
-    the summaries per variant (with ``per_scan`` rows), the ground-truth RMSE and plane
-    count, and the label images of each group's first scan."""
+    All PPE variants of a scan share one job (one greedy run per (max_distance_m,
+    min_points)); the exactly refitted ground truth is one more job per scan. Returns
+    ``{key: (part, figs)}``: the summaries per variant (with ``per_scan`` rows), the
+    ground-truth RMSE and plane count, and the label images of each group's first scan."""
     jobs, index = [], []
     for key, sources, variants in groups:
         ppe = [n for n, (m, _) in variants.items() if m == "PPE"]
@@ -421,7 +431,8 @@ def noise_table(nt: dict, run_all, tuned: dict) -> dict:
             ``0 .. n_scans-1`` of that split's scenes and noise seeds), ``shape``,
             ``noise_levels_mm`` (radial σ, each with ``angular_sigma_mdeg``),
             ``extra_conditions`` (more ``[radial mm, angular mdeg]`` pairs), ``ppe_rows``
-            (``{name, d, min_points, e | kappa}``, ``e`` in m² or ``"auto"``) and
+            (``{name, max_distance_m, min_points, max_increment | kappa}``,
+            ``max_increment`` in m² or ``"auto"``) and
             ``baselines`` (add MSAC and PEAC with ``tuned``'s parameters).
         run_all: ``run_all(jobs, desc)`` runs :func:`job` argument tuples in the pool.
         tuned: ``{method: params}``; MSAC and PEAC are listed if present.
@@ -512,7 +523,7 @@ def _noise_lines(nt: dict) -> list[str]:
     ]
     for part in nt["levels"]:
         for name, s in part["methods"].items():
-            e = _fmt(s, "e_m2", 1, ".2g") if "e_m2" in s else ""
+            e = _fmt(s, "max_increment", 1, ".2g") if "max_increment" in s else ""
             cells = [
                 f"{part['radial_sigma_mm']:g}",
                 f"{part['angular_sigma_mdeg']:g}",
@@ -579,7 +590,10 @@ def main(cfg: DictConfig) -> None:
                 p.update(OmegaConf.to_container(cfg.msac.fixed, resolve=True))
             if m == "PEAC":
                 p.update(OmegaConf.to_container(cfg.peac.fixed, resolve=True))
-    ppe_default = {**OmegaConf.to_container(cfg.ppe.default, resolve=True), "e": "auto"}
+    ppe_default = {
+        **OmegaConf.to_container(cfg.ppe.default, resolve=True),
+        "max_increment": "auto",
+    }
 
     ctx = multiprocessing.get_context("spawn")
     with cf.ProcessPoolExecutor(
@@ -599,7 +613,8 @@ def main(cfg: DictConfig) -> None:
         res = {"tuned": dict(tuned), "train": {}, "config": OmegaConf.to_container(cfg)}
         if "table" in parts:
             # 1. grid search on the training split
-            ppe_abs = given.get("PPE_abs")  # the absolute-e variant (key without spaces for Hydra)
+            # the absolute-threshold variant (key without spaces for Hydra)
+            ppe_abs = given.get("PPE_abs")
             for m in methods:
                 if m in given:  # parameters supplied: no grid search
                     continue
@@ -612,7 +627,7 @@ def main(cfg: DictConfig) -> None:
                 if m == "PPE":  # the absolute threshold the tuned kappa meant on the training scans
                     sig2 = float(np.mean([r[best]["sigma_hat_m"] ** 2 for r in rows]))
                     ppe_abs = {k: v for k, v in tuned["PPE"].items() if k != "kappa"}
-                    ppe_abs["e"] = tuned["PPE"]["kappa"] * sig2
+                    ppe_abs["max_increment"] = tuned["PPE"]["kappa"] * sig2
             res["tuned"] = {
                 **tuned,
                 **({"PPE (absolute e)": ppe_abs} if ppe_abs else {}),

@@ -1,12 +1,12 @@
 """Pole-landmark mapping and long-term localization (dissertation ch. 12): Table 12.1 and
 Table 12.2 analogues and Figures 12.1 / 12.3 on simulated urban drives along KITTI-00.
 
-World and sensor: :func:`lidarjax.datasets.make_urban_world` places street lamps, sign
+World and sensor: :func:`lidarjax.sim.make_urban_world` places street lamps, sign
 posts, traffic-light poles, tree trunks (with permeable crowns), facades, cars,
 pedestrians, bushes and one row of construction barrels along the real KITTI-00 trajectory
 (``route.start`` .. ``route.stop``); an HDL-32E-like lidar (32 x 2170 rays, 2 cm noise) is
 cast exactly against it at every ground-truth pose (10 Hz). Sessions 1 .. n-1 are the same
-drive "weeks later" (:func:`lidarjax.datasets.urban_session`): poles removed and added,
+drive "weeks later" (:func:`lidarjax.sim.urban_session`): poles removed and added,
 parked cars, pedestrians and moving cars re-sampled, and in ``sessions.barrel_session`` the
 barrel row shifted sideways (the failure case of section 12.5.1). Every session has its own
 drifting wheel odometry.
@@ -34,10 +34,8 @@ route.stop=300 sessions.n=2 localization.runs=2 kitti_protocol.enabled=false``.
 
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import replace
-from pathlib import Path
 
 import hydra
 import matplotlib
@@ -48,23 +46,13 @@ import jax.numpy as jnp  # noqa: E402
 import jaxlie  # noqa: E402
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+from _common import output_dir, write_results  # noqa: E402
 from _schemas import validate  # noqa: E402
-from hydra.core.hydra_config import HydraConfig  # noqa: E402
 from matplotlib.patches import Rectangle  # noqa: E402
 from omegaconf import DictConfig, OmegaConf  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
-from lidarjax.datasets import (  # noqa: E402
-    POLE_KINDS,
-    LidarSpec,
-    hdl32e,
-    load_urban_trajectory,
-    make_urban_world,
-    simulate_urban_scan,
-    urban_session,
-    wheel_odometry,
-)
-from lidarjax.datasets._urban import scan_seed  # noqa: E402
+from lidarjax.datasets import load_urban_trajectory  # noqa: E402
 from lidarjax.features import PoleConfig, Poles, extract_poles, local_map_spec  # noqa: E402
 from lidarjax.localization import (  # noqa: E402
     OdometryMotionModel,
@@ -80,6 +68,16 @@ from lidarjax.localization import (  # noqa: E402
 )
 from lidarjax.metrics import trajectory_errors  # noqa: E402
 from lidarjax.rays import SUB, RayBatch, from_spinning_scan  # noqa: E402
+from lidarjax.sim import (  # noqa: E402
+    POLE_KINDS,
+    LidarSpec,
+    hdl32e,
+    make_urban_world,
+    scan_seed,
+    simulate_urban_scan,
+    urban_session,
+    wheel_odometry,
+)
 
 # Table 12.1 (NCLT, 27 sessions) and Table 12.2 (KITTI) of the dissertation.
 PAPER_121 = {"delta_pos_m_mean": 0.284, "delta_pos_m_mean_wo_barrels": 0.200}
@@ -520,7 +518,7 @@ def kitti_protocol(cfg, gt, world0, pcfg, odometry) -> dict:
 @hydra.main(config_path="../configs", config_name="poles", version_base=None)
 def main(cfg: DictConfig) -> None:
     validate(cfg, "poles")
-    out = Path(HydraConfig.get().runtime.output_dir)
+    out = output_dir()
     t_start = time.perf_counter()
     traj = load_urban_trajectory()
     stop = len(traj.xy_yaw) if cfg.route.stop is None else int(cfg.route.stop)
@@ -572,8 +570,7 @@ def main(cfg: DictConfig) -> None:
     if cfg.kitti_protocol.enabled and cfg.only != "table_12_1":
         res["kitti_protocol"] = kitti_protocol(cfg, gt, world0, pcfg, odometry)
     res["wall_s"] = time.perf_counter() - t_start
-    (out / "results.json").write_text(json.dumps(res, indent=2))
-    (out / "results.md").write_text(table(res))
+    write_results(out, results=res, markdown=table(res), cfg=cfg)
     print(table(res))
 
 

@@ -50,22 +50,18 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+from _common import output_dir, write_results  # noqa: E402
 from _schemas import log_name, validate  # noqa: E402
-from hydra.core.hydra_config import HydraConfig  # noqa: E402
 from omegaconf import DictConfig, OmegaConf  # noqa: E402
 from scipy.optimize import minimize  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from lidarjax import features as F  # noqa: E402
 from lidarjax import metrics  # noqa: E402
-from lidarjax.datasets import (  # noqa: E402
-    fetch,
-    load_carmen,
-    random_polygon,
-    simulate_polygon_scan,
-)
+from lidarjax.datasets import fetch, load_carmen  # noqa: E402
 from lidarjax.plot import plot_polyline_scan  # noqa: E402
 from lidarjax.rays import HIT, RayBatch, from_scan  # noqa: E402
+from lidarjax.sim import random_polygon, simulate_polygon_scan  # noqa: E402
 
 METHODS = ("VVL", "IEF", "SAM", "PLE", "PLE+")
 COLORS = {"VVL": "tab:orange", "IEF": "tab:green", "SAM": "tab:purple", "PLE": "tab:blue",
@@ -636,7 +632,7 @@ def plot_example(ds: Dataset, i: int, J: int, cfg, out: Path) -> dict:
 def main(cfg: DictConfig) -> None:
     validate(cfg, "polylines")
     jax.config.update("jax_enable_x64", bool(cfg.x64))
-    out = Path(HydraConfig.get().runtime.output_dir)
+    out = output_dir()
     out.mkdir(parents=True, exist_ok=True)
     unknown = set(cfg.methods) - set(METHODS)
     if unknown:
@@ -710,10 +706,9 @@ def main(cfg: DictConfig) -> None:
     if "per_log" in summary:
         summary["per_log_vs_paper"] = per_log_vs_paper(summary)
     summary["runtime_s"] = time.perf_counter() - t0
-    (out / "results.json").write_text(json.dumps(summary, indent=2))
-    (out / "per_scan.json").write_text(json.dumps(per_scan))
     md = tables(summary)
-    (out / "results.md").write_text(md)
+    write_results(out, results=summary, markdown=md, cfg=cfg)
+    (out / "per_scan.json").write_text(json.dumps(per_scan))
     print(md)
 
 

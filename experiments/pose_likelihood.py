@@ -28,30 +28,34 @@ logs=[intel] eval.max_scans=4``.
 
 from __future__ import annotations
 
-import json
 import time
 import zlib
-from pathlib import Path
 
 import hydra
 import jax
 import jax.numpy as jnp
-import jaxlie
 import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+from _common import (  # noqa: E402
+    even_odd_scans,
+    grid_model,
+    mapping_stats,
+    output_dir,
+    save_figure,
+    write_results,
+)
 from _schemas import validate  # noqa: E402
-from hydra.core.hydra_config import HydraConfig  # noqa: E402
 from omegaconf import DictConfig, OmegaConf  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from lidarjax import maps  # noqa: E402
 from lidarjax.datasets import fetch, load_carmen  # noqa: E402
 from lidarjax.metrics import dirac_divergence, inverse_kl, kl_to_gaussian  # noqa: E402
-from lidarjax.rays import HIT, RayBatch, from_scan  # noqa: E402
-from lidarjax.raytrace import GridSpec, accumulate, max_cells_for  # noqa: E402
+from lidarjax.rays import HIT, RayBatch  # noqa: E402
+from lidarjax.raytrace import GridSpec, max_cells_for  # noqa: E402
 from lidarjax.sensor_models import (  # noqa: E402
     posterior_log_likelihood,
     ray_log_likelihoods_at_poses,
@@ -128,46 +132,25 @@ def evaluate_log(name: str, cfg: DictConfig) -> dict:
     t_start = time.perf_counter()
     log = load_carmen(fetch(name))
     r_min, r_max = float(cfg.r_min_m), float(log.usable_range_m)
-    res = float(cfg.grid.resolution_m)
-    map_idx = np.arange(0, log.n_scans, 2)[:: int(cfg.mapping.scan_stride)]
-    odd = np.arange(1, log.n_scans, 2)
+    even, odd = even_odd_scans(log.n_scans)
+    map_idx = even[:: int(cfg.mapping.scan_stride)]
     n_eval = min(int(cfg.eval.max_scans), odd.size)
     eval_idx = odd[np.unique(np.round(np.linspace(0, odd.size - 1, n_eval)).astype(int))]
     beams = np.arange(0, log.n_beams, int(cfg.eval.beam_stride))
     az = np.asarray(log.azimuths_rad[beams])
 
     # ---- mapping: even scans at their corrected poses ----
-    mp = log.poses[map_idx]
-    rays = from_scan(
-        jaxlie.SE2.from_xy_theta(mp[:, 0], mp[:, 1], mp[:, 2]),
-        log.azimuths_rad,
-        log.ranges_m[map_idx],
-        r_min,
-        r_max,
-    )
     # Grid: all in-range endpoints of all scans (even and odd) plus a margin that covers the
     # endpoints of scans evaluated at poses up to 2.5 m away.
-    hit_all = log.ranges_m < r_max
-    th = log.poses[:, 2:3] + log.azimuths_rad
-    ends = log.poses[:, None, :2] + log.ranges_m[..., None] * np.stack([np.cos(th), np.sin(th)], -1)
-    pts = np.concatenate([ends[hit_all], log.poses[:, :2]])
-    spec = GridSpec.covering(pts, res, margin=float(cfg.grid.margin_m))
-    stats = jax.block_until_ready(accumulate(spec, rays, chunk_size=int(cfg.accumulate_chunk_size)))
-    kinds = np.asarray(rays.kind)
-    p_out = cfg.endpoint.p_out
-    if p_out == "auto":
-        p_out = float(np.clip((kinds != HIT).mean(), 1e-3, 0.5))
-    models = {
-        "dec": maps.decay_rate_map(stats),
-        "ref": maps.reflection_map(stats),
-        "end": maps.endpoint_map(
-            stats,
-            sigma_m=float(cfg.endpoint.sigma_m),
-            z_hit=float(cfg.endpoint.z_hit),
-            z_rand=float(cfg.endpoint.z_rand),
-            p_out=float(p_out),
-        ),
-    }
+    stats, spec, p_out = mapping_stats(
+        log,
+        cfg,
+        r_min,
+        r_max,
+        stride=int(cfg.mapping.scan_stride),
+        chunk_size=int(cfg.accumulate_chunk_size),
+    )
+    models = {m: grid_model(m, stats, cfg, p_out) for m in ("dec", "ref", "end")}
     gamma = maps.gamma_posterior(stats)
     beta = maps.beta_posterior(stats)
     mc = max_cells_for(spec, r_max)
@@ -416,7 +399,7 @@ def plot(rows: list[dict]):
 @hydra.main(config_path="../configs", config_name="pose_likelihood", version_base=None)
 def main(cfg: DictConfig) -> dict:
     validate(cfg, "pose_likelihood")
-    out = Path(HydraConfig.get().runtime.output_dir)
+    out = output_dir()
     t0 = time.perf_counter()
     rows = []
     for name in (bar := tqdm(list(cfg.logs), desc="logs", unit="log")):
@@ -432,12 +415,9 @@ def main(cfg: DictConfig) -> dict:
             k: f"{sum(r['orderings'][k] for r in rows)}/{len(rows)}" for k in rows[0]["orderings"]
         },
     }
-    (out / "results.json").write_text(json.dumps(results, indent=2, allow_nan=False))
     md = markdown(rows, cfg, total)
-    (out / "results.md").write_text(md)
-    fig = plot(rows)
-    fig.savefig(out / "pose_likelihood.png", dpi=100)
-    (out / "config.yaml").write_text(OmegaConf.to_yaml(cfg))
+    write_results(out, results=results, markdown=md, cfg=cfg, allow_nan=False)
+    save_figure(plot(rows), out / "pose_likelihood.png", dpi=100)
     print(md)
     print(f"wrote {out / 'results.json'}, {out / 'results.md'}, {out / 'pose_likelihood.png'}")
     return results

@@ -65,7 +65,6 @@ Writes ``results.json``, ``results.md`` and ``figure_8_2.png`` into Hydra's outp
 from __future__ import annotations
 
 import functools
-import json
 import math
 import time
 from pathlib import Path
@@ -74,12 +73,12 @@ import hydra
 import jax
 import jax.numpy as jnp
 import numpy as np
+from _common import output_dir, write_results
 from _schemas import validate
-from hydra.core.hydra_config import HydraConfig
 from jax import lax
 from jax.scipy.special import betainc
 from matplotlib.figure import Figure
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 from tqdm import tqdm
 
 MODELS = ("reflection", "decay_rate")
@@ -383,7 +382,7 @@ def _markdown(results: dict) -> str:
 @hydra.main(config_path="../configs", config_name="posterior_corridor", version_base=None)
 def main(cfg: DictConfig) -> dict:
     _validate(cfg)
-    out = Path(HydraConfig.get().runtime.output_dir)
+    out = output_dir()
     t_start = time.perf_counter()
     root = jax.random.key(int(cfg.seed))
     runs = int(cfg.runs)
@@ -484,9 +483,7 @@ def main(cfg: DictConfig) -> dict:
     }
     _plot(results, str(cfg.error_bar), out / "figure_8_2.png")
     md = _markdown(results)
-    (out / "results.json").write_text(json.dumps(results, indent=2, allow_nan=False))
-    (out / "results.md").write_text(md)
-    (out / "config.yaml").write_text(OmegaConf.to_yaml(cfg))
+    write_results(out, results=results, markdown=md, cfg=cfg, allow_nan=False)
     print(md)
     print(f"wrote {out / 'figure_8_2.png'}, {out / 'results.json'}, {out / 'results.md'}")
     return results

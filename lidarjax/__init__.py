@@ -4,6 +4,7 @@ Layers (each imports only from the ones before it)::
 
     datasets (NumPy I/O) -> rays + raytrace (JAX kernels) -> maps / sensor_models / features
     -> localization
+    sim (synthetic worlds, casting with raytrace's primitives) feeds the same types as datasets
 
 See ``README.md`` and ``../shared/DESIGN.md``.
 """

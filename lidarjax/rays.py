@@ -61,7 +61,7 @@ def _scan_batch(T_world_sensor, data_axes: tuple[int, ...], name: str) -> tuple[
         ) from e
 
 
-def _reject(x, bad: Callable, message: str, deps: tuple = ()):
+def reject_where(x, bad: Callable, message: str, deps: tuple = ()):
     """``x`` checked against the elementwise predicate ``bad(xp, x)`` (``xp`` is ``np`` or
     ``jnp``; ``deps`` are other arrays ``bad`` reads): if ``x`` and ``deps`` are concrete,
     a bad entry raises ``ValueError(message ...)`` at once and ``x`` is returned unchanged;
@@ -91,7 +91,7 @@ def check_finite_nonnegative(x: ArrayLike, name: str) -> Array:
         x: values to check, any shape.
         name: the argument's name, quoted in the error message.
     """
-    x = _reject(
+    x = reject_where(
         x, lambda xp, a: ~xp.isfinite(a) | (a < 0), f"{name} must be finite and non-negative"
     )
     return jnp.asarray(x)
@@ -105,7 +105,7 @@ def check_finite(x: ArrayLike, name: str) -> Array:
         x: values to check, any shape.
         name: the argument's name, quoted in the error message.
     """
-    return jnp.asarray(_reject(x, lambda xp, a: ~xp.isfinite(a), f"{name} must be finite"))
+    return jnp.asarray(reject_where(x, lambda xp, a: ~xp.isfinite(a), f"{name} must be finite"))
 
 
 ROTATION_NORM_TOL = 1e-3  # |norm - 1| allowed for a pose's unit complex / quaternion
@@ -123,7 +123,7 @@ def check_pose(T, name: str = "T_world_sensor"):
         name: the argument's name, quoted in the error message.
     """
     message = f"{name} must be finite (NaN or infinite pose parameters)"
-    T = jax.tree.map(lambda p: _reject(p, lambda xp, a: ~xp.isfinite(a), message), T)
+    T = jax.tree.map(lambda p: reject_where(p, lambda xp, a: ~xp.isfinite(a), message), T)
     if not hasattr(T, "rotation"):  # SO2 / SO3 themselves: nothing more to check here
         return T
     n_rot = T.rotation().parameters().shape[-1]  # 2 (unit complex) or 4 (quaternion)
@@ -138,7 +138,7 @@ def check_pose(T, name: str = "T_world_sensor"):
         f"(+- {ROTATION_NORM_TOL}); normalise it (e.g. jaxlie's .normalize()) or build it with "
         "from_xy_theta / from_rotation_and_translation"
     )
-    return jax.tree.map(lambda p: _reject(p, unnormalised, message), T)
+    return jax.tree.map(lambda p: reject_where(p, unnormalised, message), T)
 
 
 def _check_ranges(ranges, kind, name: str):
@@ -149,7 +149,7 @@ def _check_ranges(ranges, kind, name: str):
         return xp.isnan(r) | (r < 0) | (xp.isinf(r) & (k != SUP))
 
     message = f"{name} must be >= 0 and not NaN (+inf only for SUP rays, kind={SUP})"
-    return _reject(ranges, bad, message, deps=(kind,))
+    return reject_where(ranges, bad, message, deps=(kind,))
 
 
 def _check_shapes(o, d, r, k, r_min, r_max) -> None:
@@ -200,11 +200,11 @@ class RayBatch(eqx.Module):
             for x in (origins, directions, ranges, kind)
         )
         _check_shapes(origins, directions, ranges, kind, r_min, r_max)
-        self.origins = _reject(
+        self.origins = reject_where(
             origins, lambda xp, a: ~xp.isfinite(a), "origins must be finite (NaN or inf pose?)"
         )
-        self.directions = _reject(
-            _reject(
+        self.directions = reject_where(
+            reject_where(
                 directions,
                 lambda xp, a: ~xp.isfinite(a),
                 "directions must be finite (NaN or inf heading/azimuth?)",
@@ -212,7 +212,7 @@ class RayBatch(eqx.Module):
             lambda xp, a: xp.all(a == 0, axis=-1, keepdims=True),
             "directions must be non-zero (a zero direction has no ray to walk)",
         )
-        self.kind = _reject(
+        self.kind = reject_where(
             kind,
             lambda xp, a: (a != HIT) & (a != SUB) & (a != SUP),
             f"kind must be HIT ({HIT}), SUB ({SUB}) or SUP ({SUP})",
@@ -256,15 +256,28 @@ class RayBatch(eqx.Module):
             r_max=self.r_max,
         )
 
-    def trace_lengths(self) -> Float[Array, "*batch"]:
-        """Length (m) the ray is known to have travelled: the range for HIT and SUB rays,
-        ``r_max`` for SUP rays."""
+    def mapping_lengths(self) -> Float[Array, "*batch"]:
+        """Length (m) the ray is known to have travelled, the evidence a map is built from:
+        the range for HIT and SUB rays, ``r_max`` for SUP rays. Mapping
+        (:func:`~lidarjax.raytrace.accumulate`) and :meth:`endpoints` use it."""
         return jnp.where(self.kind == SUP, self.r_max, self.ranges)
 
+    def model_lengths(self) -> Float[Array, "*batch"]:
+        """Length (m) a forward sensor model evaluates the ray to: the range for HIT rays,
+        ``r_min`` for SUB rays (``P(r < r_min)``) and ``r_max`` for SUP rays
+        (``P(r >= r_max)``), Eq. (7.16). The grid models walk their rays this far."""
+        return jnp.where(
+            self.kind == HIT, self.ranges, jnp.where(self.kind == SUB, self.r_min, self.r_max)
+        )
+
+    def trace_lengths(self) -> Float[Array, "*batch"]:
+        """The :meth:`mapping_lengths` (the name before the two lengths were told apart)."""
+        return self.mapping_lengths()
+
     def endpoints(self) -> Float[Array, "*batch d"]:
-        """``origins + trace_lengths * directions`` (m); for SUP rays the point at r_max
+        """``origins + mapping_lengths * directions`` (m); for SUP rays the point at r_max
         (``inf`` components when ``r_max`` is infinite)."""
-        return self.origins + self.trace_lengths()[..., None] * self.directions
+        return self.origins + self.mapping_lengths()[..., None] * self.directions
 
     def counts(self) -> dict[str, int]:
         """Number of HIT, SUB and SUP rays (host-side convenience)."""
@@ -302,7 +315,7 @@ def classify(ranges_m: Float[Array, "*batch"], r_min, r_max) -> Int[Array, "*bat
     Raises:
         ValueError: concrete NaN/negative readings or bad limits.
     """
-    ranges_m = _reject(
+    ranges_m = reject_where(
         ranges_m, lambda xp, r: xp.isnan(r) | (r < 0), "ranges_m must be >= 0 and not NaN"
     )
     lo, hi = _check_limits(r_min, r_max, strict=False)
@@ -446,7 +459,7 @@ def from_points(
         raise ValueError(f"points_xyz must have shape [*scans, n, 3], got {pts.shape}")
     batch = _scan_batch(T_world_sensor, pts.shape[:-2], "points_xyz")
     pts = jnp.asarray(
-        _reject(pts, lambda xp, a: ~xp.isfinite(a), "points_xyz contains NaN/inf values")
+        reject_where(pts, lambda xp, a: ~xp.isfinite(a), "points_xyz contains NaN/inf values")
     )
     T_world_sensor = check_pose(T_world_sensor, "T_world_sensor")
     lo, hi = _check_limits(r_min, r_max)
@@ -519,9 +532,9 @@ def from_spinning_scan(
         raise ValueError(f"ranges_m must have shape [*scans, {d.shape[0]}], got {r.shape}")
     batch = _scan_batch(T_world_sensor, r.shape[:-1], "ranges_m")
     d = jnp.asarray(
-        _reject(d, lambda xp, a: ~xp.isfinite(a), "directions must be finite and non-zero")
+        reject_where(d, lambda xp, a: ~xp.isfinite(a), "directions must be finite and non-zero")
     )
-    norm = _reject(
+    norm = reject_where(
         jnp.linalg.norm(d, axis=-1),
         lambda xp, a: ~(a > 0),
         "directions must be finite and non-zero",
@@ -530,7 +543,7 @@ def from_spinning_scan(
     T_world_sensor = check_pose(T_world_sensor, "T_world_sensor")
     lo, hi = _check_limits(r_min, r_max)
     r = jnp.asarray(
-        _reject(
+        reject_where(
             r,
             lambda xp, a: xp.isnan(a) | (a < 0),
             "ranges_m must be >= 0 or +inf (no return); found NaN/negative",

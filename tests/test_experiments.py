@@ -243,7 +243,8 @@ def test_planes_small(tmp_path):
     path (Table 11.1), and the per-noise-level table on 40 x 40 scans."""
     import dataclasses
 
-    from lidarjax.datasets import synpeb_scan, write_synpeb_pcd
+    from lidarjax.datasets import write_synpeb_pcd
+    from lidarjax.sim import synpeb_scan
 
     # a scan file in the published SynPEB label convention (planes numbered from 10)
     scan = synpeb_scan("test", 5, shape=(40, 40))
@@ -256,7 +257,7 @@ def test_planes_small(tmp_path):
         "shape=[60,60]",
         "n_train=2",
         "n_test=2",
-        "ppe.grid.d=[0.1]",
+        "ppe.grid.max_distance_m=[0.1]",
         "ppe.grid.kappa=[16,50]",
         "ppe.grid.min_points=[4]",
         "msac.grid.threshold_m=[0.05]",
@@ -270,7 +271,11 @@ def test_planes_small(tmp_path):
         "noise_table.extra_conditions=[[0.4,25.0]]",
     )
     assert res["tuned"]["PPE"]["kappa"] in (16, 50)
-    assert res["tuned"]["PPE (default rule)"] == {"d": 0.2, "min_points": 4, "e": "auto"}
+    assert res["tuned"]["PPE (default rule)"] == {
+        "max_distance_m": 0.2,
+        "min_points": 4,
+        "max_increment": "auto",
+    }
     assert len(res["train"]["PPE"]["f_mean"]) == 2
     parts = (
         ("test", res["test"], 2),
@@ -289,7 +294,8 @@ def test_planes_small(tmp_path):
         assert part["gt_rmse_m"]["mean"] < (0.02 if key == "crop" else 0.05)
         # the default rule's threshold: max(200 sigma_hat², 0.01 m²)
         for r in part["methods"]["PPE (default rule)"]["per_scan"]:
-            assert r["e_m2"] == pytest.approx(max(200 * r["sigma_hat_m"] ** 2, 0.01), rel=1e-9)
+            inc = r["max_increment"]
+            assert inc == pytest.approx(max(200 * r["sigma_hat_m"] ** 2, 0.01), rel=1e-9)
     # the crop has 13 labels; label 3 (20 rays) is not a plane in the SynPEB convention
     assert res["crop"]["n_gt_mean"] == 12
     # the file's planes are counted from label 10: all of the generated scan's planes
@@ -312,7 +318,7 @@ def test_planes_small(tmp_path):
             "PEAC",
         }
         for r in lv["methods"]["PPE, old default 200 σ̂²"]["per_scan"]:
-            assert r["e_m2"] == pytest.approx(200 * r["sigma_hat_m"] ** 2, rel=1e-9)
+            assert r["max_increment"] == pytest.approx(200 * r["sigma_hat_m"] ** 2, rel=1e-9)
     # the 20 mm / 1 mdeg level re-simulates test scan 0 of the split exactly
     from lidarjax.features import estimate_noise
 

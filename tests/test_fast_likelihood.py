@@ -359,7 +359,7 @@ def test_bad_inputs_raise_value_error():
     spec, o, d, r = _geometry(2, n_random=3)
     rays = _all_kinds(o, d, r, 0.4, 4.0)
     m = _maps(spec)["decay"]
-    with pytest.raises(ValueError, match="model must be one of"):
+    with pytest.raises(ValueError, match="model must be a grid model"):
         batch_log_likelihood(np.zeros(spec.shape), rays)
     with pytest.raises(ValueError, match="rays must be a RayBatch"):
         batch_log_likelihood(m, (o, d, r))

@@ -10,7 +10,6 @@ import pytest
 from helpers import finite_difference
 
 from lidarjax import rays as R
-from lidarjax.datasets import random_polygon, simulate_polygon_scan
 from lidarjax.features import (
     AIC,
     MaxRMSE,
@@ -20,6 +19,7 @@ from lidarjax.features import (
     optimize_polylines,
 )
 from lidarjax.raytrace import first_segment_hit, ray_segment
+from lidarjax.sim import random_polygon, simulate_polygon_scan
 
 D_RM = 0.5
 

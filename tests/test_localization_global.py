@@ -14,7 +14,6 @@ import jaxlie
 import numpy as np
 import pytest
 
-from lidarjax.datasets._synthetic import make_office, simulate_scans
 from lidarjax.localization import (
     ScanModel,
     init_from_scan,
@@ -26,6 +25,7 @@ from lidarjax.localization._global import proposal_log_density
 from lidarjax.maps import decay_rate_map, smooth_stats
 from lidarjax.rays import from_scan
 from lidarjax.raytrace import GridSpec, accumulate
+from lidarjax.sim import make_office, simulate_scans
 
 
 def _wrap(a):

@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 
 from lidarjax import maps
-from lidarjax.datasets._synthetic import OfficeWorld, simulate_scans
 from lidarjax.localization import ScanModel, from_vector
 from lidarjax.rays import HIT, SUB, SUP, classify, from_scan
 from lidarjax.raytrace import GridSpec, GridStats, accumulate
+from lidarjax.sim import OfficeWorld, simulate_scans
 
 
 def _brute_smooth(a: np.ndarray, sigma: float, truncate: float = 3.0) -> np.ndarray:

@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lidarjax.datasets import random_polygon
 from lidarjax.metrics import (
     area_ratio,
     explained_fraction,
@@ -13,6 +12,7 @@ from lidarjax.metrics import (
     ray_rmse,
     star_polygon,
 )
+from lidarjax.sim import random_polygon
 
 SQUARE = np.array([[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]])  # side 2, area 4
 

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from lidarjax import rays as R
-from lidarjax.datasets import random_polygon, simulate_polygon_scan
 from lidarjax.features import extract_polylines
+from lidarjax.sim import random_polygon, simulate_polygon_scan
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 from _numpy_ple import ple_numpy  # noqa: E402

@@ -111,7 +111,10 @@ def test_raybatch_validates_shapes():
         )  # fmt: skip
     rays = from_scan(jaxlie.SE2.identity(), jnp.zeros(3), jnp.array([1.0, 9.0, 0.0]), 0.5, 5.0)
     assert rays.counts() == {"HIT": 1, "SUB": 1, "SUP": 1}
-    np.testing.assert_allclose(rays.trace_lengths(), [1.0, 5.0, 0.0])
+    # ranges [1, 9, 0] with r_min 0.5, r_max 5: HIT, SUP, SUB
+    np.testing.assert_allclose(rays.mapping_lengths(), [1.0, 5.0, 0.0])  # SUB: its range
+    np.testing.assert_allclose(rays.model_lengths(), [1.0, 5.0, 0.5])  # SUB: r_min
+    np.testing.assert_allclose(rays.trace_lengths(), rays.mapping_lengths())
 
 
 def test_from_spinning_scan_keeps_no_returns():

@@ -387,7 +387,7 @@ def test_accumulate_total_length_equals_sum_of_clipped_lengths():
     lo, hi = np.zeros(2), np.array([4.0, 3.0])
     total = 0.0
     for o, d, length in zip(
-        np.asarray(flat.origins), np.asarray(flat.directions), np.asarray(flat.trace_lengths())
+        np.asarray(flat.origins), np.asarray(flat.directions), np.asarray(flat.mapping_lengths())
     ):
         iv = clip_interval(lo, hi, o, d, length)
         total += 0.0 if iv is None else iv[1] - iv[0]
@@ -453,7 +453,7 @@ def test_traverse_rays_matches_single_ray_traverse():
     assert tr.cells.shape[:2] == (2, 5) and bool(jnp.all(tr.complete))
     for s in range(2):
         for b in range(5):
-            length = float(rays.trace_lengths()[s, b])
+            length = float(rays.mapping_lengths()[s, b])
             one = traverse(
                 spec, rays.origins[s, b], rays.directions[s, b], length, tr.cells.shape[2]
             )

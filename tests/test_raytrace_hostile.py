@@ -451,7 +451,7 @@ def _length_term(cells, seg):
 @eqx.filter_jit
 def _stats_ll_fold(rays, m):
     flat = rays.flatten()
-    fold = fold_rays(m.spec, flat.origins, flat.directions, flat.trace_lengths(), _length_term)
+    fold = fold_rays(m.spec, flat.origins, flat.directions, flat.mapping_lengths(), _length_term)
     return accumulate(m.spec, rays).lengths, batch_log_likelihood(m, rays), fold.body
 
 
@@ -513,7 +513,7 @@ def _stats_and_fold_at_resolution(res):
     spec = GridSpec(SPEC_LO, res, SPEC_SHAPE)
     rays = good_rays()
     flat = rays.flatten()
-    fold = fold_rays(spec, flat.origins, flat.directions, flat.trace_lengths(), _length_term)
+    fold = fold_rays(spec, flat.origins, flat.directions, flat.mapping_lengths(), _length_term)
     return accumulate(spec, rays, backend="jax").lengths, fold.grid_len
 
 

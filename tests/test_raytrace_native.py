@@ -124,13 +124,13 @@ d_h = int(jnp.sum(a.hits != b.hits)); d_m = int(jnp.sum(a.misses != b.misses))
 # float32 segment ends are ray parameters t <= L_max computed with a few roundings each,
 # which XLA and C++ order differently (XLA turns some divisions into reciprocal products):
 # allow 32 ulp(L_max) per segment (12 seen), i.e. per cell visits * 32 * eps * L_max
-L_max = float(jnp.max(rays.flatten().trace_lengths()))
+L_max = float(jnp.max(rays.flatten().mapping_lengths()))
 bound = (a.hits + a.misses + 1) * 32 * jnp.finfo(jnp.float32).eps * L_max
 rel = float(jnp.max(jnp.abs(a.lengths - b.lengths) / bound))
 f = rays.flatten()
 t = CellTerm.linear(slope=jnp.asarray(rng.uniform(0, 2, spec.shape), jnp.float32))
-fa = fold_rays(spec, f.origins, f.directions, f.trace_lengths(), t, backend="jax")
-fb = fold_rays(spec, f.origins, f.directions, f.trace_lengths(), t, backend="native")
+fa = fold_rays(spec, f.origins, f.directions, f.mapping_lengths(), t, backend="jax")
+fb = fold_rays(spec, f.origins, f.directions, f.mapping_lengths(), t, backend="native")
 cells = int(jnp.sum(jnp.any(fa.last_cell != fb.last_cell, axis=-1)))
 # body sums term * segment over <= walk_bound cells: same per-segment allowance
 body = float(jnp.max(jnp.abs(fa.body - fb.body)) / (2 * 210 * 32 * 1.2e-7 * L_max))

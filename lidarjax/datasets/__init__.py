@@ -1,7 +1,16 @@
-"""Dataset layer: file readers/writers, the checksummed data registry and synthetic worlds.
+"""Dataset layer: file readers/writers and the checksummed data registry.
 
 NumPy only; nothing here is called inside ``jit``. Readers return plain array containers.
+The synthetic worlds and simulators live in :mod:`lidarjax.sim`; their old names here
+(``lidarjax.datasets.simulate_synpeb_scan`` etc.) still resolve, lazily and with a
+``DeprecationWarning`` naming the new place, so that importing this package never imports
+:mod:`lidarjax.sim` (which imports this one).
 """
+
+from __future__ import annotations
+
+import importlib
+import warnings
 
 from ._carmen import CarmenLog as CarmenLog
 from ._carmen import load_carmen as load_carmen
@@ -13,39 +22,15 @@ from ._kitti import load_kitti_times as load_kitti_times
 from ._pcd import PointCloud as PointCloud
 from ._pcd import read_pcd as read_pcd
 from ._pcd import write_pcd as write_pcd
-from ._polygons import random_polygon as random_polygon
-from ._polygons import simulate_polygon_scan as simulate_polygon_scan
 from ._registry import REGISTRY as REGISTRY
 from ._registry import available as available
 from ._registry import data_dirs as data_dirs
 from ._registry import fetch as fetch
-from ._synpeb import ConvexPolyhedron as ConvexPolyhedron
-from ._synpeb import SynPEBScan as SynPEBScan
-from ._synpeb import SynPEBScene as SynPEBScene
-from ._synpeb import cast_rays as cast_rays
-from ._synpeb import load_synpeb_pcd as load_synpeb_pcd
-from ._synpeb import make_synpeb_scene as make_synpeb_scene
-from ._synpeb import simulate_synpeb_scan as simulate_synpeb_scan
-from ._synpeb import synpeb_scan as synpeb_scan
-from ._synpeb import synpeb_split as synpeb_split
-from ._synpeb import write_synpeb_pcd as write_synpeb_pcd
-from ._synthetic import OfficeWorld as OfficeWorld
-from ._synthetic import make_office as make_office
-from ._synthetic import simulate_scans as simulate_scans
-from ._urban import BOX_KINDS as BOX_KINDS
-from ._urban import HDL32E_ELEVATIONS_DEG as HDL32E_ELEVATIONS_DEG
-from ._urban import POLE_KINDS as POLE_KINDS
-from ._urban import LidarSpec as LidarSpec
-from ._urban import UrbanScan as UrbanScan
-from ._urban import UrbanTrajectory as UrbanTrajectory
-from ._urban import UrbanWorld as UrbanWorld
-from ._urban import hdl32e as hdl32e
-from ._urban import load_urban_trajectory as load_urban_trajectory
-from ._urban import make_urban_world as make_urban_world
-from ._urban import simulate_urban_scan as simulate_urban_scan
-from ._urban import simulate_urban_scans as simulate_urban_scans
-from ._urban import urban_session as urban_session
-from ._urban import wheel_odometry as wheel_odometry
+from ._synpeb_io import SynPEBScan as SynPEBScan
+from ._synpeb_io import load_synpeb_pcd as load_synpeb_pcd
+from ._synpeb_io import write_synpeb_pcd as write_synpeb_pcd
+from ._urban_trajectory import UrbanTrajectory as UrbanTrajectory
+from ._urban_trajectory import load_urban_trajectory as load_urban_trajectory
 from ._velodyne import KittiSequence as KittiSequence
 from ._velodyne import NcltGroundTruth as NcltGroundTruth
 from ._velodyne import NcltHitsPacket as NcltHitsPacket
@@ -60,3 +45,55 @@ from ._velodyne import write_kitti_velodyne as write_kitti_velodyne
 from ._velodyne import write_nclt_ground_truth as write_nclt_ground_truth
 from ._velodyne import write_nclt_velodyne_hits as write_nclt_velodyne_hits
 from ._velodyne import write_nclt_velodyne_sync as write_nclt_velodyne_sync
+
+# Names that moved to lidarjax.sim, where they keep their names. Resolved on first access by
+# __getattr__ below, never at import time: sim imports datasets, not the other way round.
+_MOVED_TO_SIM = frozenset(
+    (
+        # office
+        "OfficeWorld",
+        "make_office",
+        "simulate_scans",
+        # polygons
+        "random_polygon",
+        "simulate_polygon_scan",
+        # SynPEB-style scenes
+        "ConvexPolyhedron",
+        "SynPEBScene",
+        "cast_rays",
+        "make_synpeb_scene",
+        "simulate_synpeb_scan",
+        "synpeb_scan",
+        "synpeb_split",
+        # urban drives
+        "BOX_KINDS",
+        "HDL32E_ELEVATIONS_DEG",
+        "POLE_KINDS",
+        "LidarSpec",
+        "UrbanScan",
+        "UrbanWorld",
+        "hdl32e",
+        "make_urban_world",
+        "simulate_urban_scan",
+        "simulate_urban_scans",
+        "urban_session",
+        "wheel_odometry",
+    )
+)
+
+
+def __getattr__(name: str):
+    """Forward a name that moved to :mod:`lidarjax.sim`, with a ``DeprecationWarning``."""
+    if name not in _MOVED_TO_SIM:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    warnings.warn(
+        f"lidarjax.datasets.{name} has moved to lidarjax.sim.{name}; import it from "
+        "lidarjax.sim (the old name will be removed)",
+        DeprecationWarning,
+        stacklevel=2,
+    )
+    return getattr(importlib.import_module("lidarjax.sim"), name)
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | _MOVED_TO_SIM)

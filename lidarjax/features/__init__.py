@@ -2,24 +2,15 @@
 heuristic baselines of section 10.5 (Visvalingam, iterative endpoint fit, split-and-merge),
 planes (PPE, ch. 11) with the MSAC and PEAC-style baselines, and poles (ch. 12)."""
 
-from ._plane import AUTO_FLOOR_M2 as AUTO_FLOOR_M2
-from ._plane import AUTO_KAPPA as AUTO_KAPPA
-from ._plane import TETROMINOES as TETROMINOES
-from ._plane import PlaneFit as PlaneFit
-from ._plane import PlaneSegmentation as PlaneSegmentation
-from ._plane import auto_max_increment as auto_max_increment
-from ._plane import default_plane_solver as default_plane_solver
-from ._plane import estimate_noise as estimate_noise
-from ._plane import extract_planes as extract_planes
-from ._plane import extract_planes_path as extract_planes_path
-from ._plane import extract_planes_reference as extract_planes_reference
-from ._plane import fit_planes as fit_planes
-from ._plane import linearized_plane_error as linearized_plane_error
-from ._plane import plane_error as plane_error
-from ._plane import plane_ranges as plane_ranges
-from ._plane import refit_segmentation as refit_segmentation
 from ._plane_baselines import msac_planes as msac_planes
 from ._plane_baselines import peac_planes as peac_planes
+from ._plane_fit import PlaneFit as PlaneFit
+from ._plane_fit import default_plane_solver as default_plane_solver
+from ._plane_fit import fit_planes as fit_planes
+from ._plane_fit import plane_error as plane_error
+from ._plane_fit import plane_ranges as plane_ranges
+from ._plane_fit import refit_segmentation as refit_segmentation
+from ._plane_stats import linearized_plane_error as linearized_plane_error
 from ._poles import PoleConfig as PoleConfig
 from ._poles import Poles as Poles
 from ._poles import extract_poles as extract_poles
@@ -46,6 +37,15 @@ from ._polyline_baselines import iterative_endpoint_fit as iterative_endpoint_fi
 from ._polyline_baselines import point_segment_distance as point_segment_distance
 from ._polyline_baselines import split_and_merge as split_and_merge
 from ._polyline_baselines import visvalingam as visvalingam
+from ._ppe import extract_planes as extract_planes
+from ._ppe import extract_planes_path as extract_planes_path
+from ._ppe_result import PlaneSegmentation as PlaneSegmentation
+from ._ppe_result import PPEStop as PPEStop
+from ._ppe_scan import TETROMINOES as TETROMINOES
+from ._ppe_threshold import AUTO_FLOOR_M2 as AUTO_FLOOR_M2
+from ._ppe_threshold import AUTO_KAPPA as AUTO_KAPPA
+from ._ppe_threshold import auto_max_increment as auto_max_increment
+from ._ppe_threshold import estimate_noise as estimate_noise
 
 __all__ = [
     "PolylineMap",
@@ -72,8 +72,8 @@ __all__ = [
     "linearized_plane_error",
     "TETROMINOES",
     "PlaneSegmentation",
+    "PPEStop",
     "extract_planes",
-    "extract_planes_reference",
     "extract_planes_path",
     "estimate_noise",
     "auto_max_increment",

@@ -47,10 +47,9 @@ import numpy as np
 from jax.scipy.special import betainc
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from ..maps._posterior import BetaPosteriorMap, beta_posterior
+from ..maps import BetaPosteriorMap, beta_posterior
 from ..rays import RayBatch
-from ..raytrace import GridSpec, GridStats, accumulate
-from ..raytrace._native import check_backend
+from ..raytrace import GridSpec, GridStats, accumulate, check_backend
 
 __all__ = [
     "PoleConfig",

@@ -37,8 +37,26 @@ from ._landmarks import (
 )
 from ._poses import circular_mean, from_vector, relative_motion, take, to_vector, weighted_mean
 from ._scan import CoarseToFineScanModel, ScanModel, coarse_to_fine_scan_model
+from .refine import (
+    DCTScan,
+    FieldScan,
+    SmoothDecayRateField,
+    SmoothDecayRateScan,
+    refine_dct_scan_pose,
+    refine_pose,
+    refine_scan_pose,
+    smooth_fields,
+)
 
 __all__ = [
+    "DCTScan",
+    "FieldScan",
+    "SmoothDecayRateField",
+    "SmoothDecayRateScan",
+    "refine_dct_scan_pose",
+    "refine_pose",
+    "refine_scan_pose",
+    "smooth_fields",
     "PoseLattice",
     "pose_lattice",
     "init_from_scan",

@@ -23,10 +23,10 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 
 from .._math import symmetric_eigh_small
-from ..maps._grid import DecayRateMap
+from ..maps import DecayRateMap
 from ._filter import OdometryMotionModel
 from ._poses import Pose, dof, from_vector
-from .refine import SmoothDecayRateField, SmoothDecayRateScan
+from .refine import FieldScan, SmoothDecayRateField, SmoothDecayRateScan
 
 __all__ = ["GradientGuidedMotion", "SmoothScanSurrogate", "smooth_scan_surrogate"]
 
@@ -325,7 +325,7 @@ class SmoothScanSurrogate(eqx.Module):
             placeholder, replaced by the measurement at every call).
     """
 
-    scan: SmoothDecayRateScan
+    scan: FieldScan
 
     def __call__(self, particles: jaxlie.SE2, ranges: Float[ArrayLike, " b"]) -> Float[Array, " n"]:
         t = self.scan
@@ -337,7 +337,7 @@ class SmoothScanSurrogate(eqx.Module):
             t.r_max,
             rate_floor=t.rate_floor,
             ray_floor=t.ray_floor,
-            n_nodes=t.n_nodes,
+            n_nodes=t.field.n_nodes,
         )
         return jax.vmap(obj)(particles)
 

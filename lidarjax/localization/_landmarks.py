@@ -34,7 +34,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from ..features._poles import Poles
+from ..features import Poles
 
 __all__ = [
     "PoleMap",

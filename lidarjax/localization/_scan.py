@@ -9,12 +9,10 @@ import jaxlie
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
-from ..maps._grid import EndpointMap
-from ..maps._smoothing import smooth_stats
+from ..maps import AbstractGridModel, EndpointMap, smooth_stats
 from ..rays import HIT, SUB, from_scan
-from ..raytrace._native import check_backend, check_threads
-from ..sensor_models._common import gather, safe_log
-from ..sensor_models._fast import GRID_MODELS, batch_log_likelihood
+from ..raytrace import check_backend, check_threads
+from ..sensor_models import batch_log_likelihood, likelihood_field_log_likelihood
 
 
 class ScanModel(eqx.Module):
@@ -26,8 +24,8 @@ class ScanModel(eqx.Module):
     ``[n]``. Pure and jit-compatible; the map is a traced field.
 
     Attributes:
-        map: any grid model accepted by ``batch_log_likelihood`` (decay-rate, reflection,
-            endpoint, Gamma / Beta full posterior).
+        map: any grid model (:class:`~lidarjax.maps.AbstractGridModel`: decay-rate,
+            reflection, endpoint, Gamma / Beta full posterior, or your own).
         azimuths: ``[b]`` beam angles relative to the sensor heading (rad).
         r_min: minimum range (m); readings below are SUB.
         r_max: maximum usable range (m); readings at or beyond are SUP.
@@ -84,9 +82,12 @@ class ScanModel(eqx.Module):
         backend: str = "auto",
         threads: int | None = None,
     ):
-        if not isinstance(map, GRID_MODELS):
-            names = ", ".join(t.__name__ for t in GRID_MODELS)
-            raise ValueError(f"map must be one of {names}; got {type(map).__name__}")
+        if not isinstance(map, AbstractGridModel):
+            raise ValueError(
+                "map must be a grid model (an AbstractGridModel: DecayRateMap, ReflectionMap, "
+                f"EndpointMap, GammaPosteriorMap, BetaPosteriorMap or your own); got "
+                f"{type(map).__name__}"
+            )
         if map.spec.dim != 2:
             raise ValueError(f"map must be 2-D for 2-D scans, got a {map.spec.dim}-D grid")
         az = jnp.asarray(azimuths, dtype=map.spec.origin.dtype)
@@ -139,7 +140,7 @@ class ScanModel(eqx.Module):
             self.r_max,
         )
         if isinstance(self.map, EndpointMap) and not self.endpoint_normalized:
-            ll = _likelihood_field(self.map, rays, self.r_max)
+            ll = likelihood_field_log_likelihood(self.map, rays)
         else:
             ll = batch_log_likelihood(
                 self.map,
@@ -171,17 +172,6 @@ def _mix_uniform(ll, kind, z_rand: float, r_min: float, r_max: float) -> Array:
         jnp.where(kind == SUB, np.log(z_rand * r_min / r_max) if r_min > 0 else -jnp.inf, -jnp.inf),
     ).astype(ll.dtype)
     return jnp.logaddexp(ll + log_keep, log_u)
-
-
-def _likelihood_field(m: EndpointMap, rays, r_max: float) -> Array:
-    """Classic (unnormalised) likelihood-field model per ray."""
-    spec = m.spec
-    cell = spec.cell_of(rays.endpoints())
-    inside = spec.contains(cell)
-    rand = m.z_rand / r_max if np.isfinite(r_max) else 0.0
-    f = jnp.where(inside, m.z_hit * gather(m.hit_field(), cell), 0.0) + rand
-    hit = safe_log(1.0 - m.p_out) + safe_log(f)
-    return jnp.where(rays.kind == HIT, hit, safe_log(m.p_out))
 
 
 class CoarseToFineScanModel(eqx.Module):

@@ -4,7 +4,11 @@ posteriors (Beta / Gamma per cell) with their measurement likelihoods and occupa
 maps (ch. 9): continuous decay-rate maps with closed-form likelihoods and an optimistix fit;
 the decay-rate field interface (``AbstractDecayRateField``: grid, DCT or a user's field,
 one forward model ``field_log_likelihood`` and one optimistix ``fit``); kernel smoothing
-of the statistics for robust localization (``smooth_stats``);
+of the statistics for robust localization (``smooth_stats``) and the continuous
+(bilinear, optionally blurred) field of a grid map for pose refinement
+(``SmoothDecayRateField``); the grid-model protocol (``AbstractGridModel``: per-cell term,
+finish and walk, shared by every likelihood driver; ``grid_log_likelihood`` evaluates any
+grid model differentiably);
 GPOM and Hilbert-map baselines (``lidarjax.maps.baselines``, scikit-learn)."""
 
 from ._dct import DCTMap as DCTMap
@@ -32,6 +36,9 @@ from ._grid import decay_rate_map as decay_rate_map
 from ._grid import distance_transform as distance_transform
 from ._grid import endpoint_map as endpoint_map
 from ._grid import reflection_map as reflection_map
+from ._model import AbstractGridModel as AbstractGridModel
+from ._model import GridWalk as GridWalk
+from ._model import walk_log_likelihood as grid_log_likelihood
 from ._posterior import BetaPosteriorMap as BetaPosteriorMap
 from ._posterior import GammaPosteriorMap as GammaPosteriorMap
 from ._posterior import beta_moment_prior as beta_moment_prior
@@ -40,6 +47,8 @@ from ._posterior import gamma_moment_prior as gamma_moment_prior
 from ._posterior import gamma_posterior as gamma_posterior
 from ._posterior import log_likelihood as posterior_log_likelihood
 from ._posterior import occupancy as occupancy
+from ._smooth_field import SmoothDecayRateField as SmoothDecayRateField
+from ._smoothing import blur as blur
 from ._smoothing import smooth_cells as smooth_cells
 from ._smoothing import smooth_stats as smooth_stats
 
@@ -62,6 +71,9 @@ __all__ = [
     "dct_to_grid",
     "fit_dct",
     "rays_in_box",
+    "AbstractGridModel",
+    "GridWalk",
+    "grid_log_likelihood",
     "DecayRateMap",
     "ReflectionMap",
     "EndpointMap",
@@ -77,6 +89,8 @@ __all__ = [
     "gamma_moment_prior",
     "posterior_log_likelihood",
     "occupancy",
+    "SmoothDecayRateField",
+    "blur",
     "smooth_cells",
     "smooth_stats",
 ]

@@ -19,6 +19,8 @@ Concrete fields:
   from the ray tracer (Eq. 7.13);
 - :class:`~lidarjax.maps.DCTMap`: ``lambda = f^2`` with ``f`` a cosine series, closed-form
   integral (Eq. 9.10 and its fast spectral / quadrature paths);
+- :class:`~lidarjax.maps.SmoothDecayRateField`: the bilinear interpolant of a 2-D grid
+  map's (optionally blurred) rates, for pose refinement; midpoint-rule integral;
 - any smooth field of the user's: subclass :class:`AbstractQuadratureField`, implement
   ``rate_in_box(points)`` and the integral is Gauss-Legendre quadrature over the part of the
   ray inside the field's box.
@@ -101,9 +103,11 @@ class AbstractDecayRateField(eqx.Module):
         """The field with ``params`` (a pytree like :meth:`parameters`) put back."""
         return eqx.combine(params, self)
 
-    def log_likelihood(self, rays: RayBatch, *, chunk_size: int = 4096) -> Float[Array, "*batch"]:
+    def log_likelihood(
+        self, rays: RayBatch, *, chunk_size: int = 4096, rate_floor: float = 0.0
+    ) -> Float[Array, "*batch"]:
         """Per-ray log-likelihood, see :func:`field_log_likelihood`."""
-        return field_log_likelihood(self, rays, chunk_size=chunk_size)
+        return field_log_likelihood(self, rays, chunk_size=chunk_size, rate_floor=rate_floor)
 
 
 # --------------------------------------------------------------------------------------
@@ -150,11 +154,12 @@ def trace_length(rays: RayBatch) -> Float[Array, "*batch"]:
     )
 
 
-def combine_log_likelihood(kind, rate_at_end, depth):
+def combine_log_likelihood(kind, rate_at_end, depth, rate_floor=0.0):
     """Log-likelihood of rays from their end-point decay rate and optical depth:
-    ``log lambda(end) - S`` (HIT, Eq. 9.5), ``log(1 - exp(-S))`` (SUB, Eq. 9.11), ``-S``
-    (SUP, Eq. 9.12); ``lambda = 0`` at a HIT gives ``-inf`` (not NaN)."""
-    hit = safe_log(rate_at_end) - depth
+    ``log(lambda(end) + rate_floor) - S`` (HIT, Eq. 9.5 for ``rate_floor = 0``),
+    ``log(1 - exp(-S))`` (SUB, Eq. 9.11), ``-S`` (SUP, Eq. 9.12); a zero end-point rate
+    (and floor) at a HIT gives ``-inf`` (not NaN)."""
+    hit = safe_log(rate_at_end + rate_floor) - depth
     return jnp.where(kind == HIT, hit, jnp.where(kind == SUB, log1mexp(depth), -depth))
 
 
@@ -172,8 +177,22 @@ def _check_chunk(chunk_size) -> None:
         raise ValueError(f"chunk_size must be a positive int, got {chunk_size!r}")
 
 
+def _check_rate_floor(rate_floor) -> float:
+    try:
+        floor = float(rate_floor)
+    except (TypeError, ValueError):
+        raise ValueError(f"rate_floor must be a number (1/m), got {rate_floor!r}") from None
+    if not (np.isfinite(floor) and floor >= 0):
+        raise ValueError(f"rate_floor must be finite and >= 0 (1/m), got {rate_floor!r}")
+    return floor
+
+
 def field_log_likelihood(
-    field: AbstractDecayRateField, rays: RayBatch, *, chunk_size: int = 4096
+    field: AbstractDecayRateField,
+    rays: RayBatch,
+    *,
+    chunk_size: int = 4096,
+    rate_floor: float = 0.0,
 ) -> Float[Array, "*batch"]:
     """Log-likelihood of each ray under any decay-rate field, Eqs. (9.3)-(9.5), (9.11),
     (9.12) (module docstring), from ``field.integral`` (to the range for HIT, ``r_min`` for
@@ -187,12 +206,18 @@ def field_log_likelihood(
         rays: ``[*batch]`` rays of the field's dimension.
         chunk_size: rays evaluated together; larger batches run in chunks (``lax.map``,
             rematerialised in reverse mode) so memory stays bounded.
+        rate_floor: added to the decay rate at HIT end points (1/m, finite, ``>= 0``):
+            ``log(lambda(end) + rate_floor) - S``, so an end point where the field is 0
+            has a finite log-likelihood (a robustness floor for pose refinement; with a
+            positive floor the HIT term is no longer a normalised density). Default 0:
+            Eq. (9.5) exactly.
 
     Returns:
         ``[*batch]`` log-likelihoods (nats; HIT values are log densities in log(1/m)).
     """
     _check_field_rays(field, rays)
     _check_chunk(chunk_size)
+    rate_floor = _check_rate_floor(rate_floor)
     flat = rays.flatten()
     if flat.ranges.shape[0] == 0:
         return jnp.zeros(rays.shape, flat.origins.dtype)
@@ -202,7 +227,7 @@ def field_log_likelihood(
     def chunk(o, d, ell, r, k):
         depth = field.integral(o, d, ell)
         lam = field.decay_rate(o + r[:, None] * d)
-        return combine_log_likelihood(k, lam, depth)
+        return combine_log_likelihood(k, lam, depth, rate_floor)
 
     out = map_chunks(
         chunk,

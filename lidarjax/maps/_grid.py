@@ -22,19 +22,21 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-from .._math import mul0
-from ..rays import _reject, is_concrete
+from .._math import log1mexp, mul0, safe_log
+from ..rays import HIT, SUB, RayBatch, check_finite_nonnegative, is_concrete, reject_where
 from ..raytrace import (
     CellTerm,
     GridSpec,
     GridStats,
     RayFold,
+    box_exit,
     fold_traversal,
     gather,
     max_cells_for,
     traverse,
 )
 from ._field import AbstractDecayRateField
+from ._model import AbstractGridModel, GridWalk
 
 
 def _check_stats(stats) -> None:
@@ -58,7 +60,7 @@ def _check_values(x, bad, message: str) -> None:
     (traced values, e.g. a map rebuilt inside ``grad`` by :func:`~lidarjax.maps.fit`, are
     not checked)."""
     if is_concrete(x):
-        _reject(x, bad, message)
+        reject_where(x, bad, message)
 
 
 def _nonneg_finite(xp, a):
@@ -69,7 +71,7 @@ def _not_prob(xp, a):
     return ~((a >= 0) & (a <= 1))
 
 
-class DecayRateMap(AbstractDecayRateField):
+class DecayRateMap(AbstractDecayRateField, AbstractGridModel):
     """Decay-rate map (dissertation Sec. 7.3): a piecewise-constant decay rate per cell.
 
     A :class:`~lidarjax.maps.AbstractDecayRateField`: ``decay_rate`` looks up the cell of a
@@ -140,6 +142,36 @@ class DecayRateMap(AbstractDecayRateField):
         """The map with rates ``params**2``."""
         return DecayRateMap(spec=self.spec, rates=params**2, outside_rate=self.outside_rate)
 
+    # -- the grid-model protocol (lidarjax.maps.AbstractGridModel), Eqs. (7.13), (7.16)
+    def _checked(self) -> DecayRateMap:
+        """The map with a run-time check (``eqx.error_if``) that traced rates are finite
+        and ``>= 0``. Concrete maps are checked when built; a traced infinite rate would
+        give ``inf * 0 = NaN`` pose gradients (and ``-inf`` values) instead of an error."""
+        if is_concrete(self.rates) and is_concrete(self.outside_rate):
+            return self
+        checked = (
+            check_finite_nonnegative(self.rates, "DecayRateMap.rates (1/m)"),
+            check_finite_nonnegative(self.outside_rate, "DecayRateMap.outside_rate (1/m)"),
+        )
+        return eqx.tree_at(lambda t: (t.rates, t.outside_rate), self, checked)
+
+    def cell_term(self, flat: RayBatch) -> CellTerm:
+        """Per-cell summand ``lambda_i d_i`` of the optical depth."""
+        return rate_term(self._checked())
+
+    def finish(self, fold: RayFold, flat: RayBatch, walk: GridWalk) -> Float[Array, " n"]:
+        """HIT: ``log lambda_k - Lambda(r)`` (Eq. 7.13); SUB: ``log(1 - exp(-Lambda(r_min)))``;
+        SUP: ``-Lambda(r_max)`` (Eq. 7.16)."""
+        length = walk.lengths
+        inside = fold.any_valid & (fold.t_end >= length)
+        lam_last = gather(self.rates, fold.last_cell)
+        depth = grid_optical_depth(self, fold, length)
+        lam_k = jnp.where(inside, lam_last, self.outside_rate)
+        hit = safe_log(lam_k) - depth  # Eq. (7.13)
+        sub = log1mexp(depth)  # Eq. (7.16): P(sub) = 1 - N(r_min)
+        sup = -depth  # Eq. (7.16): P(sup) = N(r_max)
+        return jnp.where(flat.kind == HIT, hit, jnp.where(flat.kind == SUB, sub, sup))
+
 
 def rate_term(m: DecayRateMap):
     """Per-cell summand ``lambda_i d_i`` of the optical depth (a traversal ``term``)."""
@@ -156,7 +188,7 @@ def grid_optical_depth(m: DecayRateMap, fold: RayFold, lengths) -> Array:
     return depth + mul0(m.outside_rate, out_len)
 
 
-class ReflectionMap(eqx.Module):
+class ReflectionMap(AbstractGridModel):
     """Reflection (hit-counting) map: a reflection probability per cell, Eq. (7.22).
 
     Attributes:
@@ -184,8 +216,65 @@ class ReflectionMap(eqx.Module):
         _check_values(self.probs, _not_prob, "probs must be probabilities in [0, 1]")
         _check_values(self.unknown_prob, _not_prob, "unknown_prob must be a probability in [0, 1]")
 
+    # -- the grid-model protocol (lidarjax.maps.AbstractGridModel), Eqs. (7.23), (7.32)
+    def cell_term(self, flat: RayBatch) -> CellTerm:
+        """Per-cell summand ``log(1 - q_i)`` of the cells a ray passes fully."""
+        return CellTerm.linear(offset=safe_log(1.0 - self.probs))
 
-class EndpointMap(eqx.Module):
+    def finish(self, fold: RayFold, flat: RayBatch, walk: GridWalk) -> Float[Array, " n"]:
+        """HIT: ``log P_k - log chord_k`` (Eqs. 7.23, 7.32); SUP: the survival to ``r_max``
+        with the reflecting cell's chord fraction; SUB: one minus the survival to ``r_min``
+        (see :func:`lidarjax.sensor_models.reflection_log_likelihood`)."""
+        spec = self.spec
+        dtype = spec.origin.dtype
+        f, length = fold, walk.lengths
+        inside = f.any_valid & (f.t_end >= length)
+        out_len = jnp.maximum(length - f.grid_len, 0.0)
+        direction = walk.directions
+        norm = jnp.sqrt(jnp.sum(direction * direction, axis=-1, keepdims=True))
+        unit = direction / jnp.where(norm > 0, norm, 1.0)
+
+        q_k = gather(self.probs, f.last_cell)
+        # Cells passed fully: all but the last, and the last too if the ray leaves the grid.
+        log_before = f.body + jnp.where(f.any_valid & ~inside, safe_log(1.0 - q_k), 0.0)
+        # Outside the grid: a homogeneous medium of cells of the grid's resolution with
+        # reflection probability q_out, i.e. survival (1 - q_out)^(length / resolution).
+        log1m_qout = safe_log(1.0 - self.unknown_prob)
+        log_out = -mul0(-log1m_qout, out_len / spec.resolution)
+        log_surv_full = log_before + log_out
+
+        # Reflecting cell k: chord = full length of the ray's path inside v_k (Eq. 7.32),
+        # from where the ray enters v_k (or starts, if it starts inside) to where it leaves.
+        entry = length - f.last_len
+        chord = _cell_exit(spec, f.last_cell, walk.origins, unit) - entry
+        chord = jnp.maximum(jnp.maximum(chord, f.last_len), jnp.finfo(dtype).eps * spec.resolution)
+        frac = jnp.clip(f.last_len / chord, 0.0, 1.0)
+
+        # HIT density: P(x(r) in v_k) / chord_k, Eqs. (7.23) + (7.32); outside the grid the
+        # density of the outside medium, rate -log(1 - q_out) / resolution.
+        rate_out = -log1m_qout / spec.resolution
+        hit_in = safe_log(q_k) - jnp.log(chord)
+        hit_k = jnp.where(
+            inside, hit_in, safe_log(jnp.where(jnp.isfinite(rate_out), rate_out, 1.0))
+        )
+        hit = jnp.where(log_surv_full > -jnp.inf, log_surv_full + hit_k, -jnp.inf)
+        # Survival to L: the reflecting cell counts with the fraction of its chord
+        # travelled, i.e. the CDF of the Eq. (7.32) density is linear inside a cell.
+        log_surv = log_surv_full + jnp.where(inside, safe_log(1.0 - q_k * frac), 0.0)
+        sub = log1mexp(-log_surv)
+        return jnp.where(flat.kind == HIT, hit, jnp.where(flat.kind == SUB, sub, log_surv))
+
+
+def _cell_exit(spec, cell, origin, direction):
+    """Ray parameter (m) where the ray ``origin + t * direction`` (unit direction) leaves
+    the box of ``cell`` (:func:`~lidarjax.raytrace.box_exit`); batched over leading axes."""
+    lo = spec.origin + cell.astype(spec.origin.dtype) * spec.resolution
+    hi = lo + spec.resolution
+    dt = jnp.result_type(lo, origin, direction)
+    return box_exit(lo, hi, jnp.asarray(origin, dt), jnp.asarray(direction, dt))
+
+
+class EndpointMap(AbstractGridModel):
     """Likelihood field of the endpoint model (dissertation Sec. 7.6.2, after Eq. 7.32).
 
     Attributes:
@@ -232,6 +321,50 @@ class EndpointMap(eqx.Module):
         """``[*shape]`` Gaussian term ``N(dist_i; 0, sigma)`` (1/m) per cell."""
         s = self.sigma_m
         return jnp.exp(-0.5 * (self.distances / s) ** 2) / (jnp.sqrt(2 * jnp.pi) * s)
+
+    def random_density(self, r_max) -> Float[Array, ""]:
+        """The uniform term ``z_rand / r_max`` (1/m) of the field; 0 for ``r_max = inf``."""
+        finite_max = jnp.isfinite(r_max)
+        return jnp.where(finite_max, self.z_rand / jnp.where(finite_max, r_max, 1.0), 0.0)
+
+    # -- the grid-model protocol (lidarjax.maps.AbstractGridModel), normalised per ray
+    def walk(self, flat: RayBatch) -> GridWalk:
+        """The normaliser ``Z`` integrates the field over ``[r_min, r_max]`` of each ray:
+        the walk starts at ``r_min`` along the unit direction and covers ``r_max - r_min``."""
+        norm = jnp.sqrt(jnp.sum(flat.directions**2, axis=-1, keepdims=True))
+        unit = flat.directions / jnp.where(norm > 0, norm, 1.0)
+        span = jnp.broadcast_to(flat.r_max - flat.r_min, flat.ranges.shape)
+        return GridWalk(flat.origins + flat.r_min * unit, unit, span)
+
+    def walk_bound_m(self, r_min: float, r_max: float) -> float:
+        """The walk covers ``[r_min, r_max]``."""
+        return float(r_max) - float(r_min)
+
+    def cell_term(self, flat: RayBatch) -> CellTerm:
+        """Per-cell summand ``f_i d_i`` of the normaliser ``Z``."""
+        return CellTerm.linear(
+            slope=self.z_hit * self.hit_field() + self.random_density(flat.r_max)
+        )
+
+    def finish(self, fold: RayFold, flat: RayBatch, walk: GridWalk) -> Float[Array, " n"]:
+        """HIT: ``log(1 - P) + log f(x(r)) - log Z``; SUB and SUP: ``log P`` (see
+        :func:`lidarjax.sensor_models.endpoint_log_likelihood`)."""
+        spec, f = self.spec, fold
+        field, rand = self.hit_field(), self.random_density(flat.r_max)
+        unit, span = walk.directions, walk.lengths
+        # Normaliser Z = int_{r_min}^{r_max} f(x(r)) dr of the cell-wise constant field:
+        # exact sum over the walked cells of f_i * d_i plus the uniform term off the grid.
+        f_last = self.z_hit * gather(field, f.last_cell) + rand
+        out_len = jnp.maximum(span - f.grid_len, 0.0)
+        z = f.body + jnp.where(f.any_valid, f_last * f.last_len, 0.0) + mul0(rand, out_len)
+        # Field at the end point (its cell; outside the grid only the uniform term).
+        cell = spec.cell_of(flat.origins + flat.ranges[..., None] * unit)
+        inside = spec.contains(cell)
+        f_end = jnp.where(inside, self.z_hit * gather(field, cell), 0.0) + rand
+        ok = (z > 0) & (f_end > 0)
+        log_ratio = jnp.log(jnp.where(ok, f_end, 1.0)) - jnp.log(jnp.where(ok, z, 1.0))
+        hit = jnp.where(ok, safe_log(1.0 - self.p_out) + log_ratio, -jnp.inf)
+        return jnp.where(flat.kind == HIT, hit, safe_log(self.p_out))
 
 
 def decay_rate_map(stats: GridStats, *, unknown_rate: float | None = None) -> DecayRateMap:

@@ -24,27 +24,23 @@ posterior modes are exactly the maximum-likelihood maps (Eqs. 8.16 / 8.18).
 
 from __future__ import annotations
 
-import functools
 import math
 from typing import Literal
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 from jax.scipy.special import betainc
 from jaxtyping import Array, ArrayLike, Float
 
 from .._math import log1mexp
-from ..rays import HIT, SUB, SUP, RayBatch, _reject, check_finite_nonnegative, is_concrete
+from ..rays import HIT, SUB, SUP, RayBatch, check_finite_nonnegative, is_concrete, reject_where
 from ..raytrace import (
     CellTerm,
     GridSpec,
     GridStats,
     RayFold,
-    fold_traversal,
-    max_cells_for,
-    traverse,
 )
+from ._model import AbstractGridModel, GridWalk, walk_log_likelihood
 
 __all__ = [
     "BetaPosteriorMap",
@@ -104,9 +100,11 @@ def _check_map_fields(m, fields: tuple[str, ...], beta_zero_ok: bool) -> None:
         if is_concrete(getattr(m, name)):
             check_finite_nonnegative(getattr(m, name), name)
     if is_concrete(m.alpha):
-        _reject(m.alpha, lambda xp, a: ~(xp.isfinite(a) & (a > 0)), "alpha must be finite and > 0")
+        reject_where(
+            m.alpha, lambda xp, a: ~(xp.isfinite(a) & (a > 0)), "alpha must be finite and > 0"
+        )
     if is_concrete(m.beta):
-        _reject(
+        reject_where(
             m.beta,
             lambda xp, b: ~(xp.isfinite(b) & ((b > 0) | (beta_zero_ok & (b == 0)))),
             f"beta must be finite and {'>= 0' if beta_zero_ok else '> 0'}",
@@ -224,7 +222,22 @@ def gamma_moment_prior(stats: GridStats) -> tuple[Float[Array, ""], Float[Array,
 # --------------------------------------------------------------------------------------
 
 
-class BetaPosteriorMap(eqx.Module):
+class _AbstractPosteriorModel(AbstractGridModel):
+    """The grid-model protocol of the full map posteriors, Eqs. (8.20)-(8.22): the walk
+    is in the promoted dtype of the rays, the grid and the posterior parameters; per-cell
+    terms and the finish are :func:`term` and :func:`finish`."""
+
+    def walk_dtype(self, flat: RayBatch):
+        return jnp.result_type(flat.origins.dtype, self.spec.origin.dtype, self.a.dtype)
+
+    def cell_term(self, flat: RayBatch) -> CellTerm:
+        return term(self)
+
+    def finish(self, fold: RayFold, flat: RayBatch, walk: GridWalk) -> Float[Array, " n"]:
+        return finish(self, fold, walk.origins, walk.directions, walk.lengths, flat.kind)
+
+
+class BetaPosteriorMap(_AbstractPosteriorModel):
     """Full posterior over a reflection map, ``bel(mu_i) = Beta(H_i + alpha, M_i + beta)``
     (Eq. 8.15).
 
@@ -287,7 +300,7 @@ class BetaPosteriorMap(eqx.Module):
         return jnp.where(s > 2, interior, edge).astype(a.dtype)
 
 
-class GammaPosteriorMap(eqx.Module):
+class GammaPosteriorMap(_AbstractPosteriorModel):
     """Full posterior over a decay-rate map, ``bel(lambda_i) = Gamma(H_i + alpha, R_i + beta)``
     with shape ``a`` and rate ``b`` (1/m) (Eq. 8.17).
 
@@ -540,11 +553,7 @@ def log_likelihood(
     spec = posterior_map.spec
     if rays.dim != spec.dim:
         raise ValueError(f"rays are {rays.dim}-D but posterior_map is a {spec.dim}-D grid")
-    if max_cells is None:
-        max_cells = max_cells_for(spec)
-    if not isinstance(max_cells, int) or max_cells <= 0:
-        raise ValueError(f"max_cells must be a positive int, got {max_cells!r}")
-    return _log_likelihood(posterior_map, rays, max_cells=max_cells)
+    return walk_log_likelihood(posterior_map, rays, max_cells=max_cells)
 
 
 def _checked_ab(posterior_map):
@@ -601,29 +610,6 @@ def finish(posterior_map, f: RayFold, origin, direction, trace_len, kind):
     total = total + jnp.where(out_used, out_log, 0.0)
     result = jnp.where(kind == SUB, _log1mexp(total), total)
     return jnp.where((kind == HIT) | (kind == SUB) | (kind == SUP), result, -jnp.inf)
-
-
-def trace_lengths(rays: RayBatch):
-    """Length each ray is traced to: SUB to ``r_min``, SUP to ``r_max``, HIT to its range."""
-    return jnp.where(
-        rays.kind == SUB, rays.r_min, jnp.where(rays.kind == SUP, rays.r_max, rays.ranges)
-    )
-
-
-@functools.partial(jax.jit, static_argnames=("max_cells",))
-def _log_likelihood(posterior_map, rays: RayBatch, max_cells: int):
-    spec = posterior_map.spec
-    dtype = jnp.result_type(rays.origins.dtype, spec.origin.dtype, posterior_map.a.dtype)
-    flat = rays.flatten()
-    o, d = flat.origins.astype(dtype), flat.directions.astype(dtype)
-    trace_len = trace_lengths(flat).astype(dtype)
-    tr = jax.vmap(lambda o_, d_, n_: traverse(spec, o_, d_, n_, max_cells))(o, d, trace_len)
-    f = fold_traversal(tr, term(posterior_map))
-    result = finish(posterior_map, f, o, d, trace_len, flat.kind)
-    result = eqx.error_if(
-        result, ~f.complete, "max_cells is too small: a ray was truncated by traverse_rays"
-    )
-    return result.reshape(rays.shape)
 
 
 # --------------------------------------------------------------------------------------

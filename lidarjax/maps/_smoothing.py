@@ -15,6 +15,10 @@ result (``decay_rate_map`` gives ``lambda_i = sum_j w_ij H_j / sum_j w_ij R_j``,
 full posteriors use the smoothed counts as evidence) is the model of a map whose
 resolution is the kernel width rather than the cell size. The kernel weights of a cell sum
 to 1, so the total evidence is preserved (up to what leaks out across the grid border).
+
+:func:`blur` is the same kernel with the border cells extended instead of zero (a constant
+map stays constant), for blurring a map's rates, e.g. by
+:class:`~lidarjax.maps.SmoothDecayRateField`.
 """
 
 from __future__ import annotations
@@ -27,7 +31,7 @@ from jaxtyping import Array, Float
 
 from ..raytrace import GridStats
 
-__all__ = ["gaussian_kernel_1d", "smooth_stats", "smooth_cells"]
+__all__ = ["blur", "gaussian_kernel_1d", "smooth_stats", "smooth_cells"]
 
 
 def gaussian_kernel_1d(sigma_cells: float, truncate: float = 3.0) -> np.ndarray:
@@ -48,21 +52,30 @@ def gaussian_kernel_1d(sigma_cells: float, truncate: float = 3.0) -> np.ndarray:
 
 
 def smooth_cells(
-    values: Float[Array, "*shape"], sigma_cells: float, truncate: float = 3.0
+    values: Float[Array, "*shape"],
+    sigma_cells: float,
+    truncate: float = 3.0,
+    *,
+    edge: str = "zero",
 ) -> Float[Array, "*shape"]:
-    """Separable Gaussian smoothing of a per-cell array along every axis, zero outside the
-    grid (so sums are preserved except for what leaks across the border).
+    """Separable Gaussian smoothing of a per-cell array along every axis.
 
     Args:
         values: ``[*shape]`` per-cell values (any number of axes).
         sigma_cells: standard deviation in cells; 0 returns ``values`` unchanged.
         truncate: kernel half-width in standard deviations.
+        edge: what lies beyond the grid: ``"zero"`` (default; sums are preserved except
+            for what leaks across the border, as kernel estimates of counts need) or
+            ``"nearest"`` (the border cells extended, so a constant array stays constant;
+            ``scipy.ndimage.gaussian_filter``'s ``mode="nearest"``).
 
     Returns:
         ``[*shape]`` smoothed values (floating dtype).
     """
     if not np.isfinite(sigma_cells) or sigma_cells < 0:
         raise ValueError(f"sigma_cells must be finite and >= 0, got {sigma_cells!r}")
+    if edge not in ("zero", "nearest"):
+        raise ValueError(f'edge must be "zero" or "nearest", got {edge!r}')
     out = jnp.asarray(values)
     if not jnp.issubdtype(out.dtype, jnp.floating):
         out = out.astype(jnp.result_type(float))
@@ -73,7 +86,8 @@ def smooth_cells(
     for axis in range(out.ndim):
         n = out.shape[axis]
         moved = jnp.moveaxis(out, axis, -1)
-        padded = jnp.pad(moved, [(0, 0)] * (moved.ndim - 1) + [(half, half)])
+        pad = [(0, 0)] * (moved.ndim - 1) + [(half, half)]
+        padded = jnp.pad(moved, pad, mode="edge" if edge == "nearest" else "constant")
         # sum_t k[t] * padded[..., i + t]: a static loop over the kernel taps (a few to a
         # few dozen), each a shifted slice; memory stays O(cells)
         acc = jnp.zeros_like(moved)
@@ -81,6 +95,25 @@ def smooth_cells(
             acc = acc + k[t] * padded[..., t : t + n]
         out = jnp.moveaxis(acc, -1, axis)
     return out
+
+
+def blur(values: Float[Array, "*shape"], sigma_cells: float) -> Float[Array, "*shape"]:
+    """Gaussian blur of a per-cell array (e.g. a decay-rate map's rates) with the border
+    cells extended: :func:`smooth_cells` with ``truncate = 3`` and ``edge="nearest"``, as
+    ``scipy.ndimage.gaussian_filter(values, sigma_cells, mode="nearest", truncate=3)``.
+
+    Args:
+        values: ``[*shape]`` per-cell values.
+        sigma_cells: standard deviation in cells (finite, ``>= 0``; 0 returns ``values``).
+
+    Returns:
+        ``[*shape]`` blurred values; a non-negative array stays non-negative.
+    """
+    if not np.isfinite(sigma_cells) or sigma_cells < 0:
+        raise ValueError(f"sigma_cells must be finite and >= 0, got {sigma_cells!r}")
+    if sigma_cells == 0:
+        return values
+    return smooth_cells(values, sigma_cells, 3.0, edge="nearest")
 
 
 def smooth_stats(stats: GridStats, sigma_m: float, *, truncate: float = 3.0) -> GridStats:

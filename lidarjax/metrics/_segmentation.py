@@ -17,7 +17,7 @@ Label conventions (organized scans give label images ``[H W]``; flat ``[K]`` wor
   ``min_gt_label``) marks an unlabelled point (no return, clutter, a non-plane class) that
   is excluded from all counting. Which labels are planes depends on the benchmark:
 
-  - scans from :func:`lidarjax.datasets.simulate_synpeb_scan` / ``synpeb_scan`` (and PCD
+  - scans from :func:`lidarjax.sim.simulate_synpeb_scan` / ``synpeb_scan`` (and PCD
     files written from them with ``write_synpeb_pcd``) label every face a plane, ``1..P``
     (room faces ``1..6``, objects from ``7``), ``0`` = no return: use the default ``1``;
   - the published SynPEB files (e.g. the shared crop ``synpeb/test_100.pcd``, read with

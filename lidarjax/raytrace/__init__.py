@@ -26,6 +26,9 @@ from ._grid import gather as gather
 from ._grid import max_cells_for as max_cells_for
 from ._grid import traverse as traverse
 from ._grid import traverse_rays as traverse_rays
+from ._native import BACKENDS as BACKENDS
+from ._native import check_backend as check_backend
+from ._native import check_threads as check_threads
 from ._primitives import box_exit as box_exit
 from ._primitives import clip_to_box as clip_to_box
 from ._primitives import cross2 as cross2
@@ -71,6 +74,9 @@ __all__ = [
     "pad_to_chunks",
     "unchunk",
     "map_chunked",
+    "BACKENDS",
+    "check_backend",
+    "check_threads",
     "HIT",
     "SUB",
     "SUP",

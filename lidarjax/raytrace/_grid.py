@@ -686,7 +686,7 @@ def max_cells_for(spec: GridSpec, length_m: float | None = None) -> int:
 
 def traverse_rays(spec: GridSpec, rays: RayBatch, max_cells: int | None = None) -> Traversal:
     """:func:`traverse` for every ray of a batch, each traced to its
-    :meth:`~lidarjax.rays.RayBatch.trace_lengths` (range, or ``r_max`` for SUP rays).
+    :meth:`~lidarjax.rays.RayBatch.mapping_lengths` (range, or ``r_max`` for SUP rays).
 
     Args:
         spec: the grid; its dimension must match the rays'.
@@ -710,14 +710,14 @@ def traverse_rays(spec: GridSpec, rays: RayBatch, max_cells: int | None = None) 
 def _traverse_rays(spec: GridSpec, rays: RayBatch, max_cells: int) -> Traversal:
     flat = rays.flatten()
     tr = jax.vmap(lambda o, d, length: traverse(spec, o, d, length, max_cells))(
-        flat.origins, flat.directions, flat.trace_lengths()
+        flat.origins, flat.directions, flat.mapping_lengths()
     )
     return jax.tree.map(lambda x: x.reshape(*rays.shape, *x.shape[1:]), tr)
 
 
 def expected_cell_count(spec: GridSpec, rays: RayBatch) -> Float[Array, "*batch"]:
     """Upper bound on the number of cells each ray visits (before clipping to the grid)."""
-    lengths = jnp.minimum(rays.trace_lengths(), _box_diagonal(spec))
+    lengths = jnp.minimum(rays.mapping_lengths(), _box_diagonal(spec))
     return jnp.sum(jnp.abs(rays.directions), axis=-1) * lengths / spec.resolution + spec.dim
 
 

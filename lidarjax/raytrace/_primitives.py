@@ -5,7 +5,7 @@ everything else imports them.
 
 All kernels are NaN-free in value and gradient (double-``where`` before divisions and
 square roots). Only ``jax`` and ``jaxtyping`` are imported, so every layer (also the
-NumPy simulators in :mod:`lidarjax.datasets`) may use them.
+simulators in :mod:`lidarjax.sim`) may use them.
 """
 
 from __future__ import annotations

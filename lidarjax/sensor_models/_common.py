@@ -1,81 +1,25 @@
-"""Shared pieces of the grid sensor models: NaN-safe math, input checks, the per-ray
-traversal summary and the pose-batched evaluation of 2-D scans."""
+"""Shared pieces of the grid sensor models: NaN-safe math, input checks and the
+pose-batched evaluation of 2-D scans for any grid model."""
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Callable
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import jaxlie
 import numpy as np
-from jaxtyping import Array, ArrayLike, Bool, Float
+from jaxtyping import Array, ArrayLike, Float
 
-from .._math import log1mexp as log1mexp
-from .._math import mul0 as mul0
-from .._math import safe_log as safe_log
-from ..rays import HIT, SUB, RayBatch, from_scan, is_concrete
-from ..raytrace import GridSpec, fold_traversal, map_chunked, max_cells_for, traverse
-from ..raytrace import gather as gather
+from ..maps import AbstractGridModel, grid_log_likelihood
+from ..rays import from_scan, is_concrete
+from ..raytrace import map_chunked, max_cells_for
 
 
-def check_model_inputs(model, model_type: type, rays, name: str = "map") -> None:
-    """Trace-time checks: map type, ray type and matching dimension (``ValueError``)."""
+def check_model_type(model, model_type: type, name: str = "map") -> None:
+    """Trace-time check that ``model`` is a ``model_type`` (``ValueError`` naming it)."""
     if not isinstance(model, model_type):
         raise ValueError(f"{name} must be a {model_type.__name__}, got {type(model).__name__}")
-    if not isinstance(rays, RayBatch):
-        raise ValueError(f"rays must be a RayBatch, got {type(rays).__name__}")
-    if rays.dim != model.spec.dim:
-        raise ValueError(
-            f"rays are {rays.dim}-D but {name} is a {model.spec.dim}-D grid "
-            f"(rays.origins has shape {rays.origins.shape})"
-        )
-
-
-def default_max_cells(spec: GridSpec, length_m, max_cells: int | None) -> int:
-    """A ``traverse`` budget: ``max_cells`` if given, else :func:`max_cells_for` the
-    longest trace ``length_m`` (m) when it is concrete, else for the whole grid."""
-    if max_cells is not None:
-        if not isinstance(max_cells, int) or max_cells <= 0:
-            raise ValueError(f"max_cells must be a positive int, got {max_cells!r}")
-        return max_cells
-    if length_m is not None and is_concrete(length_m):
-        length = float(np.max(np.asarray(length_m))) if np.size(length_m) else 0.0
-        return max_cells_for(spec, length)
-    return max_cells_for(spec)
-
-
-def trace_lengths(rays: RayBatch) -> Float[Array, "*batch"]:
-    """Length each ray is traced to: the range (HIT), ``r_min`` (SUB) or ``r_max`` (SUP)."""
-    return jnp.where(
-        rays.kind == HIT, rays.ranges, jnp.where(rays.kind == SUB, rays.r_min, rays.r_max)
-    )
-
-
-@functools.partial(jax.jit, static_argnames=("term", "finish", "max_cells"))
-def map_over_rays(term: Callable, finish: Callable, m, rays: RayBatch, max_cells: int) -> Array:
-    """Differentiable per-ray evaluation of a grid model given as ``term(m)`` (the per-cell
-    summand, see :func:`~lidarjax.raytrace.fold_traversal`) and ``finish(m, fold, origins,
-    directions, lengths, kind)``: each ray is traversed with a fixed ``max_cells`` budget
-    (``lax.scan``) to :func:`trace_lengths`; a run-time check fails if any ray was
-    truncated. Returns ``[*batch]``."""
-    flat = rays.flatten()
-    lengths = trace_lengths(flat)
-    tr = jax.vmap(lambda o, d, n: traverse(m.spec, o, d, n, max_cells))(
-        flat.origins, flat.directions, lengths
-    )
-    fold = fold_traversal(tr, term(m))
-    out = finish(m, fold, flat.origins, flat.directions, lengths, flat.kind)
-    return check_complete(out, fold.complete).reshape(rays.shape)
-
-
-def check_complete(out: Array, complete: Bool[Array, "*batch"]) -> Array:
-    """Attach a run-time check that no traversal ran out of its ``max_cells`` budget."""
-    return eqx.error_if(
-        out, ~complete, "max_cells is too small for some rays; pass a larger max_cells"
-    )
 
 
 def _pose_params(poses) -> Float[Array, "p 4"]:
@@ -123,9 +67,9 @@ def ray_log_likelihoods_at_poses(
     """Per-ray log-likelihoods of one 2-D scan evaluated at many sensor poses.
 
     Args:
-        model: a :class:`~lidarjax.maps.DecayRateMap`, :class:`~lidarjax.maps.ReflectionMap`
-            or :class:`~lidarjax.maps.EndpointMap` (dispatched to the matching model), or a
-            callable ``fn(rays) -> [*batch]``.
+        model: any grid model (:class:`~lidarjax.maps.AbstractGridModel`: decay-rate,
+            reflection, endpoint, Gamma / Beta posterior or your own), or a callable
+            ``fn(rays) -> [*batch]``.
         azimuths_rad: ``[b]`` beam angles relative to the sensor heading (rad).
         ranges_m: ``[b]`` raw range readings (m), classified by ``r_min``/``r_max``.
         poses: ``[p 3]`` array of ``(x, y, theta)`` (m, m, rad) or a ``jaxlie.SE2`` with
@@ -139,11 +83,6 @@ def ray_log_likelihoods_at_poses(
     Returns:
         ``[p b]`` log-likelihoods (differentiable w.r.t. ``poses``).
     """
-    from ..maps._grid import DecayRateMap, EndpointMap, ReflectionMap
-    from ._decay_rate import log_likelihood as _decay
-    from ._endpoint import log_likelihood as _endpoint
-    from ._reflection import log_likelihood as _reflection
-
     if not isinstance(chunk_size, int) or chunk_size <= 0:
         raise ValueError(f"chunk_size must be a positive int, got {chunk_size!r}")
     az = jnp.asarray(azimuths_rad, dtype=jnp.result_type(float))
@@ -157,22 +96,28 @@ def ray_log_likelihoods_at_poses(
     if not (np.isfinite(float(r_min)) and 0 <= float(r_min) < float(r_max)):
         raise ValueError(f"need 0 <= r_min < r_max, got r_min={r_min}, r_max={r_max}")
     params = _pose_params(poses)
-    dispatch = {DecayRateMap: _decay, ReflectionMap: _reflection, EndpointMap: _endpoint}
-    model_fn = dispatch.get(type(model))
-    if model_fn is not None:
+    if isinstance(model, AbstractGridModel):
         if model.spec.dim != 2:
             raise ValueError(f"model must be a 2-D map for 2-D scans, got {model.spec.dim}-D")
-        budget = r_max if model_fn is not _endpoint else float(r_max) - float(r_min)
-        mc = default_max_cells(model.spec, budget, max_cells)
+        if max_cells is None:
+            max_cells = max_cells_for(model.spec, model.walk_bound_m(r_min, r_max))
         return _at_poses(
-            model_fn, model, az, ranges, params, float(r_min), float(r_max), chunk_size, mc
+            grid_log_likelihood,
+            model,
+            az,
+            ranges,
+            params,
+            float(r_min),
+            float(r_max),
+            chunk_size,
+            max_cells,
         )
     if callable(model):
         return _at_poses(
             model, None, az, ranges, params, float(r_min), float(r_max), chunk_size, None
         )
     raise ValueError(
-        f"model must be a DecayRateMap, ReflectionMap, EndpointMap or a callable, got "
+        f"model must be a grid model (an AbstractGridModel) or a callable, got "
         f"{type(model).__name__}"
     )
 

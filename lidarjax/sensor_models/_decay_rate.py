@@ -1,53 +1,15 @@
-"""Decay-rate forward sensor model (dissertation Sec. 7.3, Eqs. 7.11-7.16)."""
+"""Decay-rate forward sensor model (dissertation Sec. 7.3, Eqs. 7.11-7.16).
+
+The model's per-cell term and finish are :class:`~lidarjax.maps.DecayRateMap`'s
+grid-model protocol (:class:`~lidarjax.maps.AbstractGridModel`)."""
 
 from __future__ import annotations
 
-import equinox as eqx
-import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from ..maps._grid import DecayRateMap, grid_optical_depth, rate_term
-from ..rays import HIT, SUB, RayBatch, check_finite_nonnegative, is_concrete
-from ..raytrace import RayFold
-from ._common import (
-    check_model_inputs,
-    default_max_cells,
-    gather,
-    log1mexp,
-    map_over_rays,
-    safe_log,
-    trace_lengths,
-)
-
-
-def _checked(m: DecayRateMap) -> DecayRateMap:
-    """``m`` with a run-time check (``eqx.error_if``) that traced rates are finite and
-    ``>= 0``. Concrete maps are checked when built; a traced infinite rate would give
-    ``inf * 0 = NaN`` pose gradients (and ``-inf`` values) instead of an error."""
-    if is_concrete(m.rates) and is_concrete(m.outside_rate):
-        return m
-    checked = (
-        check_finite_nonnegative(m.rates, "DecayRateMap.rates (1/m)"),
-        check_finite_nonnegative(m.outside_rate, "DecayRateMap.outside_rate (1/m)"),
-    )
-    return eqx.tree_at(lambda t: (t.rates, t.outside_rate), m, checked)
-
-
-def term(m: DecayRateMap):
-    """Per-cell summand ``lambda_i d_i`` of the optical depth."""
-    return rate_term(_checked(m))
-
-
-def finish(m: DecayRateMap, f: RayFold, origin, direction, length, kind):
-    """Log-likelihood of rays from their :class:`~lidarjax.raytrace.RayFold` (any batch)."""
-    inside = f.any_valid & (f.t_end >= length)
-    lam_last = gather(m.rates, f.last_cell)
-    depth = grid_optical_depth(m, f, length)
-    lam_k = jnp.where(inside, lam_last, m.outside_rate)
-    hit = safe_log(lam_k) - depth  # Eq. (7.13)
-    sub = log1mexp(depth)  # Eq. (7.16): P(sub) = 1 - N(r_min)
-    sup = -depth  # Eq. (7.16): P(sup) = N(r_max)
-    return jnp.where(kind == HIT, hit, jnp.where(kind == SUB, sub, sup))
+from ..maps import DecayRateMap, grid_log_likelihood
+from ..rays import RayBatch
+from ._common import check_model_type
 
 
 def log_likelihood(
@@ -87,6 +49,5 @@ def log_likelihood(
             that are infinite, NaN or negative raise at run time (``eqx.error_if``);
             concrete ones are rejected when the map is built.
     """
-    check_model_inputs(map, DecayRateMap, rays)
-    mc = default_max_cells(map.spec, trace_lengths(rays), max_cells)
-    return map_over_rays(term, finish, map, rays, max_cells=mc)
+    check_model_type(map, DecayRateMap)
+    return grid_log_likelihood(map, rays, max_cells=max_cells)

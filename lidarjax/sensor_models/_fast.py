@@ -4,51 +4,34 @@ The differentiable ``log_likelihood`` functions walk every ray with a fixed cell
 (``lax.scan`` of length ``max_cells``), so a batch costs ``n_rays * max_cells`` steps
 however short its rays are. :func:`batch_log_likelihood` instead walks the rays with
 :func:`lidarjax.raytrace.fold_rays` (sorted by length, chunked ``lax.while_loop``), whose
-cost is close to the number of cells actually visited. It uses the very same per-cell
-terms and final formulas as the differentiable path, so both agree to round-off.
+cost is close to the number of cells actually visited. It uses the very same walk, per-cell
+term and finish of the model's grid-model protocol (:class:`~lidarjax.maps.AbstractGridModel`)
+as the differentiable path, so both agree to round-off.
 """
 
 from __future__ import annotations
 
 import equinox as eqx
-import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from ..maps._grid import DecayRateMap, EndpointMap, ReflectionMap
-from ..maps._posterior import BetaPosteriorMap, GammaPosteriorMap
-from ..maps._posterior import finish as _posterior_finish
-from ..maps._posterior import term as _posterior_term
+from ..maps import AbstractGridModel
 from ..rays import RayBatch
-from ..raytrace import fold_rays
-from ..raytrace._native import check_backend
-from . import _decay_rate, _endpoint, _reflection
-from ._common import trace_lengths
-
-GRID_MODELS = (DecayRateMap, ReflectionMap, EndpointMap, GammaPosteriorMap, BetaPosteriorMap)
+from ..raytrace import check_backend, fold_rays
 
 
 @eqx.filter_jit
 def _fast(model, rays: RayBatch, chunk_size: int, backend: str, threads: int | None):
-    spec = model.spec
-    kw = dict(backend=backend, threads=threads)
-    if isinstance(model, EndpointMap):
-        flat, field, rand, unit, starts, span = _endpoint.prepare(model, rays)
-        term = _endpoint.term(model, field, rand)
-        f = fold_rays(spec, starts, unit, span, term, chunk_size, **kw)
-        out = _endpoint.finish(model, field, rand, f, flat, unit, span)
-        return out.reshape(rays.shape)
-    if isinstance(model, (GammaPosteriorMap, BetaPosteriorMap)):
-        term, finish = _posterior_term, _posterior_finish
-        dtype = jnp.result_type(rays.origins.dtype, spec.origin.dtype, model.a.dtype)
-    else:
-        module = _decay_rate if isinstance(model, DecayRateMap) else _reflection
-        term, finish = module.term, module.finish
-        dtype = jnp.result_type(rays.origins.dtype, spec.origin.dtype)
     flat = rays.flatten()
-    o, d = flat.origins.astype(dtype), flat.directions.astype(dtype)
-    lengths = trace_lengths(flat).astype(dtype)
-    f = fold_rays(spec, o, d, lengths, term(model), chunk_size, **kw)
-    return finish(model, f, o, d, lengths, flat.kind).reshape(rays.shape)
+    walk = model.walk(flat)
+    f = fold_rays(
+        model.spec,
+        *walk,
+        model.cell_term(flat),
+        chunk_size,
+        backend=backend,
+        threads=threads,
+    )
+    return model.finish(f, flat, walk).reshape(rays.shape)
 
 
 def batch_log_likelihood(
@@ -69,9 +52,10 @@ def batch_log_likelihood(
     gradients).
 
     Args:
-        model: a :class:`~lidarjax.maps.DecayRateMap`, :class:`~lidarjax.maps.ReflectionMap`,
-            :class:`~lidarjax.maps.EndpointMap`, :class:`~lidarjax.maps.GammaPosteriorMap`
-            or :class:`~lidarjax.maps.BetaPosteriorMap`.
+        model: any grid model (:class:`~lidarjax.maps.AbstractGridModel`): a
+            :class:`~lidarjax.maps.DecayRateMap`, :class:`~lidarjax.maps.ReflectionMap`,
+            :class:`~lidarjax.maps.EndpointMap`, :class:`~lidarjax.maps.GammaPosteriorMap`,
+            :class:`~lidarjax.maps.BetaPosteriorMap` or your own.
         rays: ``[*batch]`` rays of the map's dimension.
         chunk_size: rays walked together in one ``while_loop`` (static; memory is
             ``O(chunk_size)`` per step); JAX path only.
@@ -87,9 +71,12 @@ def batch_log_likelihood(
     Raises:
         ValueError: unknown model type, rays not a RayBatch, or mismatching dimensions.
     """
-    if not isinstance(model, GRID_MODELS):
-        names = ", ".join(t.__name__ for t in GRID_MODELS)
-        raise ValueError(f"model must be one of {names}; got {type(model).__name__}")
+    if not isinstance(model, AbstractGridModel):
+        raise ValueError(
+            "model must be a grid model (an AbstractGridModel: DecayRateMap, ReflectionMap, "
+            f"EndpointMap, GammaPosteriorMap, BetaPosteriorMap or your own); got "
+            f"{type(model).__name__}"
+        )
     if not isinstance(rays, RayBatch):
         raise ValueError(f"rays must be a RayBatch, got {type(rays).__name__}")
     if rays.dim != model.spec.dim:

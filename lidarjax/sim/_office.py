@@ -17,7 +17,9 @@ import numpy as np
 
 from ..raytrace import first_segment_hits, pad_to_chunks, unchunk
 
-_CHUNK = 4096  # rays per chunk of cast_rays (bounds memory: [chunk k])
+__all__ = ["OfficeWorld", "make_office", "simulate_scans"]
+
+_CHUNK = 4096  # rays per chunk of _cast_segments (bounds memory: [chunk k])
 
 
 @jax.jit
@@ -159,7 +161,7 @@ def make_office(seed: int = 0, *, width_m: float = 20.0, height_m: float = 12.0)
     return OfficeWorld(segments=segments, bounds=bounds, waypoints=waypoints, seed=seed)
 
 
-def cast_rays(
+def _cast_segments(
     segments: np.ndarray, origins: np.ndarray, directions: np.ndarray, max_range: float
 ) -> np.ndarray:
     """Distance to the first segment hit by each ray, ``inf`` if none within ``max_range``.
@@ -214,7 +216,7 @@ def simulate_scans(
     ang = poses[:, 2:3] + az[None, :]
     dirs = np.stack([np.cos(ang), np.sin(ang)], axis=-1).reshape(-1, 2)
     origins = np.repeat(poses[:, :2], len(az), axis=0)
-    r = cast_rays(world.segments, origins, dirs, max_range_m).reshape(len(poses), len(az))
+    r = _cast_segments(world.segments, origins, dirs, max_range_m).reshape(len(poses), len(az))
     rng = np.random.default_rng(seed)
     hit = np.isfinite(r)
     noisy = r + rng.normal(0.0, noise_sigma_m, r.shape)

@@ -27,12 +27,19 @@ demo: install
 	$(PY) experiments/demo.py
 
 # The suite without the tests marked slow (long real-data runs); CI runs both targets.
+# Test files are spread over TEST_WORKERS processes (pytest-xdist; default: the cores, at
+# most 4, each worker holds ~2 GB of compiled code); the slowest 20 tests are reported.
+# Compiled programs are cached between runs in ~/.cache/lidarjax (tests/conftest.py;
+# LIDARJAX_JAX_CACHE=off disables it).
+TEST_WORKERS ?= $(shell $(PYTHON) -c "import os; print(max(1, min(4, len(os.sched_getaffinity(0)) if hasattr(os, 'sched_getaffinity') else (os.cpu_count() or 1))))")
+PYTEST := $(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile --durations=20
+
 test: install
 	$(VENV)/bin/ruff check .
-	$(PY) -m pytest -q -m "not slow"
+	$(PYTEST) -m "not slow"
 
 test-slow: install
-	$(PY) -m pytest -q -m slow
+	$(PYTEST) -m slow
 
 test-all: test test-slow
 

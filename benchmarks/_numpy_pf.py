@@ -25,8 +25,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-
-from benchmarks._numpy_reference import _setup
+from _numpy_reference import _setup  # benchmarks/ is on sys.path (see _harness)
 
 __all__ = ["NumpyParticleFilter", "scan_log_likelihoods"]
 

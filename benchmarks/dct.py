@@ -40,16 +40,11 @@ from __future__ import annotations
 
 import argparse
 import itertools
-import json
 import math
 import os
-import statistics
 import sys
 import time
 from pathlib import Path
-
-if __package__ in (None, ""):  # run as a script: make `lidarjax` importable
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import jax
 
@@ -61,7 +56,7 @@ import jax.numpy as jnp
 import jaxlie
 import numpy as np
 import optimistix as optx
-from _machine import machine_info
+from _harness import machine_info, max_abs_diff, time_calls, write_json
 
 from lidarjax import maps
 from lidarjax.datasets import fetch, load_carmen
@@ -81,38 +76,6 @@ PAPER_CHUNK_ELEMENTS = 4_000_000
 
 
 # ------------------------------------------------------------------ helpers
-
-
-def _machine() -> dict:
-    return machine_info(optimistix=getattr(optx, "__version__", None))
-
-
-def time_call(fn, repeats: int):
-    """``(first_s, median_s, warm_times, out)``: one call (compilation + first run), then
-    ``repeats`` warm calls, each ended with ``jax.block_until_ready``."""
-    t0 = time.perf_counter()
-    out = jax.block_until_ready(fn())
-    first = time.perf_counter() - t0
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        out = jax.block_until_ready(fn())
-        times.append(time.perf_counter() - t0)
-    return first, statistics.median(times), times, out
-
-
-def _diff(a, b) -> dict:
-    """Largest absolute / relative difference over entries finite in both."""
-    a, b = np.asarray(a, np.float64).ravel(), np.asarray(b, np.float64).ravel()
-    both = np.isfinite(a) & np.isfinite(b)
-    d = np.abs(a[both] - b[both])
-    rel = d / np.maximum(np.abs(b[both]), 1.0)
-    return {
-        "n_compared": int(both.sum()),
-        "max_abs_diff": float(d.max()) if d.size else None,
-        "max_rel_diff": float(rel.max()) if rel.size else None,
-        "n_finite_mismatch": int((np.isfinite(a) != np.isfinite(b)).sum()),
-    }
 
 
 def _take(rays: RayBatch, idx) -> RayBatch:
@@ -212,7 +175,8 @@ def bench_fit(rays, lower, L, repeats, note=""):
         m, sol = maps.fit_dct(rays, (L, L), lower=lower, extent=extent)
         return m, sol
 
-    first, med, times, (m, sol) = time_call(fit, repeats)
+    t, (m, sol) = time_calls(fit, repeats, return_output=True)
+    first, med, times = t["first_call_s"], t["median_s"], t["times_s"]
     ll = float(jnp.sum(maps.dct_log_likelihood(m, rays)))
     init = maps.dct_grid_initial_map(rays, lower, extent, (L, L))
     ll_init = float(jnp.sum(maps.dct_log_likelihood(init, rays)))
@@ -222,7 +186,8 @@ def bench_fit(rays, lower, L, repeats, note=""):
     def grid():
         return maps.decay_rate_map(accumulate(spec, rays), unknown_rate=0.0)
 
-    g_first, g_med, _, gm = time_call(grid, max(repeats, 5))
+    tg, gm = time_calls(grid, max(repeats, 5), return_output=True)
+    g_first, g_med = tg["first_call_s"], tg["median_s"]
     ll_grid = float(jnp.sum(decay_rate_log_likelihood(gm, rays)))
     steps = int(sol.stats["num_steps"])
     ok = bool(sol.result == optx.RESULTS.successful)
@@ -277,7 +242,8 @@ def bench_likelihood(m, rays_eval, rays_paper, methods, repeats, paper_repeats):
             reps = repeats
         n_nodes = maps.dct_quadrature_nodes(m) if meth == "quadrature" else None
         f = _ll_fn(meth, chunk, n_nodes)
-        first, med, times, out = time_call(lambda f=f, rays=rays: f(m, rays), reps)
+        t, out = time_calls(lambda f=f, rays=rays: f(m, rays), reps, return_output=True)
+        first, med = t["first_call_s"], t["median_s"]
         vals[meth] = np.asarray(out, np.float64)
         res[meth] = {
             "n_rays": int(rays.n),
@@ -297,11 +263,11 @@ def bench_likelihood(m, rays_eval, rays_paper, methods, repeats, paper_repeats):
     n_p = rays_paper.n
     diffs = {}
     if "quadrature" in vals and "spectral" in vals:
-        diffs["quadrature_vs_spectral"] = _diff(vals["quadrature"], vals["spectral"])
+        diffs["quadrature_vs_spectral"] = max_abs_diff(vals["quadrature"], vals["spectral"])
     if "paper" in vals:
         for other in ("spectral", "quadrature"):
             if other in vals:
-                diffs[f"paper_vs_{other}"] = _diff(vals["paper"], vals[other][:n_p])
+                diffs[f"paper_vs_{other}"] = max_abs_diff(vals["paper"], vals[other][:n_p])
         res["spectral_over_paper_rate"] = res["spectral"]["rays_per_s"] / res["paper"]["rays_per_s"]
     res["differences"] = diffs
     for k, v in diffs.items():
@@ -325,7 +291,7 @@ def bench_numpy(m, rays_paper, n_numpy, paper_vals):
         "n_rays": n_numpy,
         "seconds": dt,
         "rays_per_s": n_numpy / dt,
-        "vs_jax_paper": _diff(vals, paper_vals[:n_numpy]),
+        "vs_jax_paper": max_abs_diff(vals, paper_vals[:n_numpy]),
     }
     print(
         f"  numpy Eq. 9.10 L={m.shape[0]}: {n_numpy / dt:.4g} rays/s, max abs diff to JAX "
@@ -351,7 +317,8 @@ def bench_pose_grad(m, pose, az, ranges, r_max, mask, methods, repeats):
             return jnp.sum(jnp.where(mask_j, ll, 0.0))
 
         vg = eqx.filter_jit(jax.value_and_grad(total))
-        first, med, times, (v, g) = time_call(lambda vg=vg: vg(pose_j, m), repeats)
+        t, (v, g) = time_calls(lambda vg=vg: vg(pose_j, m), repeats, return_output=True)
+        first, med = t["first_call_s"], t["median_s"]
         res[meth] = {
             "first_call_s": first,
             "median_s": med,
@@ -368,7 +335,8 @@ def bench_pose_grad(m, pose, az, ranges, r_max, mask, methods, repeats):
     if len(methods) > 1:
         a, b = (res[k] for k in methods[:2])
         res["value_diff"] = abs(a["value"] - b["value"])
-        res["grad_max_abs_diff"] = float(np.max(np.abs(np.subtract(a["grad"], b["grad"]))))
+        res["grad_diff"] = max_abs_diff(np.asarray(a["grad"]), np.asarray(b["grad"]))
+        res["grad_max_abs_diff"] = res["grad_diff"]["max_abs_diff"]
     return res
 
 
@@ -400,7 +368,7 @@ def main(argv=None) -> dict:
         n_eval, n_paper, n_numpy = 2000, 200, 200
         fit_repeats, ll_repeats, paper_repeats, grad_repeats = 3, 7, 3, 20
 
-    machine = _machine()
+    machine = machine_info()
     log = load_carmen(fetch("intel"))
     r_max = float(log.usable_range_m)
     P = log.poses
@@ -524,8 +492,7 @@ def main(argv=None) -> dict:
         "numpy_paper_reference": numpy_ref,
         "pose_value_and_grad": pose_grad,
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(report, indent=2))
+    write_json(args.out, report)
     print(markdown(report))
     print(f"wrote {args.out}")
     return report

@@ -50,17 +50,10 @@ writes ``benchmarks/results/fields.json``. A Markdown summary is printed.
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import sys
 import tempfile
 import time
 from pathlib import Path
-
-if __package__ in (None, ""):  # run as a script: make `lidarjax` importable
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-# the user-field example (RBFField, patch_rays)
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "experiments"))
 
 os.environ["JAX_ENABLE_X64"] = "1"  # float64; before jax is imported
 
@@ -69,13 +62,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
-from _machine import machine_info as _machine_info
-from custom_field import patch_rays, rbf_field_like
-from dct import time_call as timed  # noqa: E402  (benchmarks/ is on sys.path)
+from _harness import experiments_on_path, machine_info, max_abs_diff, time_calls, write_json
 
-from lidarjax import maps
-from lidarjax.raytrace import GridSpec, accumulate
-from lidarjax.sensor_models import decay_rate_log_likelihood
+experiments_on_path()  # the user-field example of experiments/custom_field.py
+from custom_field import patch_rays, rbf_field_like  # noqa: E402
+
+from lidarjax import maps  # noqa: E402
+from lidarjax.raytrace import GridSpec, accumulate  # noqa: E402
+from lidarjax.sensor_models import decay_rate_log_likelihood  # noqa: E402
 
 DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "fields.json"
 QUICK_OUT = Path(tempfile.gettempdir()) / "lidarjax_fields_quick.json"
@@ -84,27 +78,6 @@ TOL = 1e-4
 
 
 # ------------------------------------------------------------------ helpers
-
-
-def machine_info() -> dict:
-    return _machine_info(
-        equinox=getattr(eqx, "__version__", None), optimistix=getattr(optx, "__version__", None)
-    )
-
-
-def max_abs_diff(a, b) -> dict:
-    """Largest absolute difference over the leaves of two pytrees, entries finite in both,
-    plus the number of entries finite in only one."""
-    la = [np.asarray(x, np.float64).ravel() for x in jax.tree_util.tree_leaves(a)]
-    lb = [np.asarray(x, np.float64).ravel() for x in jax.tree_util.tree_leaves(b)]
-    a, b = np.concatenate(la), np.concatenate(lb)
-    both = np.isfinite(a) & np.isfinite(b)
-    d = np.abs(a[both] - b[both])
-    return {
-        "max_abs_diff": float(d.max()) if d.size else None,
-        "max_abs_value": float(np.abs(b[both]).max()) if d.size else None,
-        "n_finite_mismatch": int((np.isfinite(a) != np.isfinite(b)).sum()),
-    }
 
 
 def ml_grid(rays, lower, L):
@@ -158,11 +131,15 @@ def bench_throughput(fields: dict, rays, repeats: int) -> dict:
         vals, grads = {}, {}
         for path, fn in paths:
             jitted = _generic_ll if path == "generic" else fn
-            first, med, warm, v = timed(lambda j=jitted: j(field, rays), repeats)
+            t, v = time_calls(lambda j=jitted: j(field, rays), repeats, return_output=True)
+            first, med, warm = t["first_call_s"], t["median_s"], t["times_s"]
             vals[path] = v
             vg = _value_and_grad(fn)
             p0 = field.parameters()
-            g_first, g_med, g_warm, (val, g) = timed(lambda vg=vg: vg(p0, field, rays), repeats)
+            tg, (val, g) = time_calls(
+                lambda vg=vg: vg(p0, field, rays), repeats, return_output=True
+            )
+            g_first, g_med, g_warm = tg["first_call_s"], tg["median_s"], tg["times_s"]
             grads[path] = g
             res[path] = {
                 "forward_first_call_s": first,
@@ -220,7 +197,7 @@ def _result_name(result) -> str:
 def _eager_check_s(field, rays) -> float:
     """Warm time of the un-jitted ``field_log_likelihood`` that ``maps.fit`` runs on its
     initial field before optimising (the finiteness check)."""
-    return timed(lambda: maps.field_log_likelihood(field, rays), 1)[1]
+    return time_calls(lambda: maps.field_log_likelihood(field, rays), 1)["median_s"]
 
 
 def _fit_record(first, warm, sol, ll) -> dict:
@@ -249,7 +226,8 @@ def bench_fits(train, lower, L: int, repeats: int, max_steps_slow: int) -> dict:
         return maps.fit_dct(train, init=init, rtol=TOL, atol=TOL)
 
     for key, fn in (("dct_generic", gen), ("dct_fit_dct", spec)):
-        first, med, _, (m, sol) = timed(fn, repeats)
+        t, (m, sol) = time_calls(fn, repeats, return_output=True)
+        first, med = t["first_call_s"], t["median_s"]
         ll = float(jnp.sum(_dct_ll(m, train)))
         res[key] = _fit_record(first, med, sol, ll)
     res["dct_generic"]["eager_initial_check_s"] = _eager_check_s(init, train)
@@ -265,7 +243,8 @@ def bench_fits(train, lower, L: int, repeats: int, max_steps_slow: int) -> dict:
     def rbf():
         return maps.fit(rbf0, train, rtol=TOL, atol=TOL, max_steps=max_steps_slow)
 
-    first, med, _, (m, sol) = timed(rbf, repeats)
+    t, (m, sol) = time_calls(rbf, repeats, return_output=True)
+    first, med = t["first_call_s"], t["median_s"]
     res["rbf"] = _fit_record(first, med, sol, float(jnp.sum(_generic_ll(m, train))))
     res["rbf"]["eager_initial_check_s"] = _eager_check_s(rbf0, train)
     res["rbf"]["quadrature_nodes"] = int(rbf0.quadrature_nodes())
@@ -273,7 +252,8 @@ def bench_fits(train, lower, L: int, repeats: int, max_steps_slow: int) -> dict:
     res["rbf_init_log_likelihood"] = float(jnp.sum(_generic_ll(rbf0, train)))
 
     # grid: closed form vs generic fit from rates 1
-    g_first, g_med, _, (cf, _) = timed(lambda: ml_grid(train, lower, L), max(repeats, 3))
+    tg, (cf, _) = time_calls(lambda: ml_grid(train, lower, L), max(repeats, 3), return_output=True)
+    g_first, g_med = tg["first_call_s"], tg["median_s"]
     ones = maps.DecayRateMap(
         spec=cf.spec, rates=jnp.ones_like(cf.rates), outside_rate=jnp.zeros_like(cf.outside_rate)
     )
@@ -281,7 +261,8 @@ def bench_fits(train, lower, L: int, repeats: int, max_steps_slow: int) -> dict:
     def grid_fit():
         return maps.fit(ones, train, rtol=TOL, atol=TOL, max_steps=max_steps_slow)
 
-    first, med, _, (gm, sol) = timed(grid_fit, repeats)
+    t, (gm, sol) = time_calls(grid_fit, repeats, return_output=True)
+    first, med = t["first_call_s"], t["median_s"]
     hits = np.asarray(stats.hits) > 0
     ref = np.asarray(cf.rates)[hits]
     rel = np.abs(np.asarray(gm.rates)[hits] - ref) / ref
@@ -385,8 +366,7 @@ def main(argv=None) -> dict:
         "throughput": throughput,
         "fits": fits,
     }
-    out_path.parent.mkdir(parents=True, exist_ok=True)
-    out_path.write_text(json.dumps(report, indent=2))
+    write_json(out_path, report)
     print(markdown(report))
     print(f"wrote {out_path} (wall time {report['wall_time_s']:.1f} s)")
     return report

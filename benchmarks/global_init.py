@@ -18,27 +18,30 @@ results go to ``benchmarks/results/global_init.json``.
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import sys
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-if __package__ in (None, ""):  # run as a script: `benchmarks`, `lidarjax` importable
-    sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "experiments"))
+import jax
+import numpy as np
+from _harness import (
+    RESULTS,
+    add_policy_args,
+    experiments_on_path,
+    machine_info,
+    policy_from_args,
+    remedies_config,
+    write_json,
+)
 
-import jax  # noqa: E402
-import numpy as np  # noqa: E402
-from _harness import add_policy_args, policy_from_args, remedies_config, time_calls  # noqa: E402
-from _machine import machine_info  # noqa: E402
-from mcl import build_stats, prepare  # noqa: E402
+experiments_on_path()  # times the experiment's own lattice, map cache and protocol
+from _common import mapping_stats  # noqa: E402
+from mcl import prepare  # noqa: E402
 from mcl_remedies import LATTICE_DEFAULTS, MapCache, _free_mask  # noqa: E402
 
 from lidarjax import localization as loc  # noqa: E402
 
-DEFAULT_OUT = ROOT / "benchmarks" / "results" / "global_init.json"
+DEFAULT_OUT = RESULTS / "global_init.json"
 
 
 def main(argv=None) -> dict:
@@ -50,13 +53,13 @@ def main(argv=None) -> dict:
     add_policy_args(ap)
     args = ap.parse_args(argv)
     policy = policy_from_args(args)
-    cfg = remedies_config(ROOT)
+    cfg = remedies_config()
     load_start = os.getloadavg()
     n = int(args.particles)
     results = {}
     for name in [x for x in args.logs.split(",") if x]:
         log, r_min, r_max, az, seq, key = prepare(name, cfg)
-        stats, spec, p_out = build_stats(log, cfg, r_min, r_max)
+        stats, spec, p_out = mapping_stats(log, cfg, r_min, r_max)
         cache = MapCache(stats, cfg, p_out)
         free = np.asarray(_free_mask(stats))
         t0 = time.perf_counter()
@@ -85,8 +88,8 @@ def main(argv=None) -> dict:
 
         jax.block_until_ready(init())
         jax.block_until_ready(ref())
-        t_init = policy.measure(f"{name} init", lambda init=init: time_calls(init, args.repeats))
-        t_ref = policy.measure(f"{name} ref", lambda ref=ref: time_calls(ref, args.repeats))
+        t_init = policy.time_calls(f"{name} init", init, args.repeats, warmup=0)
+        t_ref = policy.time_calls(f"{name} ref", ref, args.repeats, warmup=0)
         results[name] = {
             "grid_shape": list(spec.shape),
             "free_cells": int(free.sum()),
@@ -119,8 +122,7 @@ def main(argv=None) -> dict:
         "logs": results,
         "load_policy": policy.summary() if hasattr(policy, "summary") else None,
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(report, indent=2))
+    write_json(args.out, report)
     return report
 
 

@@ -39,23 +39,26 @@ and a Markdown table is printed.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
-import sys
 import time
 from pathlib import Path
-
-if __package__ in (None, ""):  # run as a script: make `lidarjax` importable
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jaxlie
 import numpy as np
-from _harness import add_policy_args, native_info, policy_from_args, ratio, time_calls, warm
-from _machine import machine_info
+from _harness import (
+    add_policy_args,
+    machine_info,
+    max_abs_diff,
+    native_info,
+    policy_from_args,
+    ratio,
+    warm,
+    write_json,
+)
 
 from lidarjax import maps
 from lidarjax.datasets import fetch, load_carmen
@@ -188,23 +191,6 @@ def _fast_at_poses(model, az, ranges, poses, r_max, chunk_size, backend="auto", 
     )
 
 
-def _compare(got, ref) -> dict:
-    """Differences of ``got`` from ``ref`` over the entries finite in both (float64)."""
-    got, ref = np.asarray(got, np.float64).ravel(), np.asarray(ref, np.float64).ravel()
-    both = np.isfinite(got) & np.isfinite(ref)
-    diff = np.abs(got[both] - ref[both])
-    rel = diff / np.maximum(np.abs(ref[both]), 1.0)
-    return {
-        "n_compared": int(both.sum()),
-        "max_abs_diff": float(diff.max()) if diff.size else None,
-        "max_rel_diff": float(rel.max()) if rel.size else None,
-        "n_finite_mismatch": int((np.isfinite(got) != np.isfinite(ref)).sum()),
-        "n_mismatch_both_nonfinite": int(
-            (~np.isfinite(got) & ~np.isfinite(ref) & (got != ref)).sum()
-        ),
-    }
-
-
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="fewer poses, repeats, reference rays")
@@ -266,7 +252,7 @@ def main(argv=None) -> dict:
 
         out, first = warm(call)
         out = np.asarray(out)
-        scan_t = policy.measure(f"{name} differentiable", lambda: time_calls(call, repeats))
+        scan_t = policy.time_calls(f"{name} differentiable", call, repeats, warmup=0)
         jax_out[name] = out
         med = scan_t["median_s"]
         print(f"{name}: {n_rays / med:.3g} rays*poses/s (first call {first:.1f} s)", flush=True)
@@ -293,10 +279,8 @@ def main(argv=None) -> dict:
                 continue
             f_out = np.asarray(f_out)
             fast_out[label] = f_out
-            t = policy.measure(
-                f"{name} fast {label}", lambda cf=call_fast: time_calls(cf, fast_repeats)
-            )
-            check = _compare(f_out, out)
+            t = policy.time_calls(f"{name} fast {label}", call_fast, fast_repeats, warmup=0)
+            check = max_abs_diff(f_out, out)
             entry["fast"][label] = {
                 "backend": backend,
                 "threads": threads,
@@ -320,7 +304,7 @@ def main(argv=None) -> dict:
             if "median_s" in fn and "median_s" in fj:
                 fn["native_over_jax"] = ratio(fj["median_s"], fn["median_s"])
                 fn["native_over_jax_best"] = ratio(fj["best_s"], fn["best_s"])
-                fn["vs_fast_jax"] = _compare(fast_out[label], fast_out["jax"])
+                fn["vs_fast_jax"] = max_abs_diff(fast_out[label], fast_out["jax"])
         results[name] = entry
         fast_outs[name] = fast_out
 
@@ -336,23 +320,18 @@ def main(argv=None) -> dict:
     for name, (fn, values, outside) in ref_fns.items():
         vals = np.empty(pick.size)
 
-        def ref_block(fn=fn, values=values, outside=outside, vals=vals):
-            t0 = time.perf_counter()
+        def ref_loop(fn=fn, values=values, outside=outside, vals=vals):
             for n, idx in enumerate(pick):
                 p, b = divmod(int(idx), az.size)
                 th = poses[p, 2] + az[b]
                 o = poses[p, :2]
                 d = np.array([math.cos(th), math.sin(th)])
                 vals[n] = fn(values, outside, lo, res, o, d, float(ranges[b]), int(kind[b]), r_max)
-            dt = time.perf_counter() - t0
-            return {"times_s": [dt], "median_s": dt, "best_s": dt}
 
-        timed = policy.measure(f"{name} numpy reference", ref_block)
+        timed = policy.time_calls(f"{name} numpy reference", ref_loop, 1, warmup=0)
         dt = timed["median_s"]
         got = jax_out[name].reshape(-1)[pick].astype(np.float64)
-        both = np.isfinite(vals) & np.isfinite(got)
-        diff = np.abs(vals[both] - got[both])
-        rel = diff / np.maximum(np.abs(vals[both]), 1.0)
+        check = max_abs_diff(got, vals, rel_tol=1e-3)  # against the float64 loop
         rate = pick.size / dt
         results[name]["numpy_reference"] = {
             "n_rays_timed": int(pick.size),
@@ -361,20 +340,12 @@ def main(argv=None) -> dict:
             "ns_per_ray": 1e9 / rate,
             "load": timed["load"],
             "speedup": results[name]["rays_x_poses_per_s"] / rate,
-            "max_abs_diff": float(diff.max()) if diff.size else None,
-            "max_rel_diff": float(rel.max()) if rel.size else None,
-            "n_finite_mismatch": int((np.isfinite(vals) != np.isfinite(got)).sum()),
-            "n_large_rel_diff_gt_1e-3": int((rel > 1e-3).sum()),
+            **check,
+            "n_large_rel_diff_gt_1e-3": check["n_rel_diff_gt_1e-3"],
         }
         for label, f_out in fast_outs[name].items():  # each fast path vs the float64 loop
             g = f_out.reshape(-1)[pick].astype(np.float64)
-            ok = np.isfinite(vals) & np.isfinite(g)
-            rel_f = np.abs(vals[ok] - g[ok]) / np.maximum(np.abs(vals[ok]), 1.0)
-            results[name]["fast"][label]["vs_numpy_reference"] = {
-                "max_rel_diff": float(rel_f.max()) if rel_f.size else None,
-                "n_rel_diff_gt_1e-3": int((rel_f > 1e-3).sum()),
-                "n_finite_mismatch": int((np.isfinite(vals) != np.isfinite(g)).sum()),
-            }
+            results[name]["fast"][label]["vs_numpy_reference"] = max_abs_diff(g, vals, rel_tol=1e-3)
         for f in results[name]["fast"].values():
             if "rays_per_s" in f:
                 f["speedup_vs_numpy"] = f["rays_per_s"] / rate
@@ -406,8 +377,7 @@ def main(argv=None) -> dict:
         "load_average_end": list(os.getloadavg()),
         "wall_time_s": time.perf_counter() - t_start,
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(report, indent=2) + "\n")
+    write_json(args.out, report)
 
     def cell(r, label, key, fmt):
         v = r["fast"].get(label, {}).get(key)

@@ -19,32 +19,30 @@ Run with ``python benchmarks/mcl_remedies.py [--variants a,b,...] [--repeats N]
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import sys
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-if __package__ in (None, ""):  # run as a script: `benchmarks`, `lidarjax` importable
-    sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "experiments"))
-
-import equinox as eqx  # noqa: E402
-import jax  # noqa: E402
-from _harness import (  # noqa: E402
+import equinox as eqx
+import jax
+from _harness import (
+    RESULTS,
     add_policy_args,
+    experiments_on_path,
+    machine_info,
     native_info,
     policy_from_args,
     remedies_config,
-    time_calls,
+    write_json,
 )
-from _machine import machine_info  # noqa: E402
-from mcl import build_stats, initial_states, prepare  # noqa: E402
-from mcl_remedies import MapCache, _variant, make_filter  # noqa: E402
-from omegaconf import OmegaConf  # noqa: E402
+from omegaconf import OmegaConf
 
-DEFAULT_OUT = ROOT / "benchmarks" / "results" / "mcl_remedies.json"
+experiments_on_path()  # times the experiment's own filters (make_filter) and protocol
+from _common import mapping_stats  # noqa: E402
+from mcl import initial_states, prepare  # noqa: E402
+from mcl_remedies import MapCache, _variant, make_filter  # noqa: E402
+
+DEFAULT_OUT = RESULTS / "mcl_remedies.json"
 REFERENCE = "dec"
 DEFAULT_VARIANTS = [
     "dec",
@@ -72,7 +70,7 @@ def main(argv=None) -> dict:
     add_policy_args(ap)
     args = ap.parse_args(argv)
     policy = policy_from_args(args)
-    cfg = remedies_config(ROOT)
+    cfg = remedies_config()
     names = [v for v in args.variants.split(",") if v]
     unknown = set(names) - set(cfg.variants)
     if unknown:
@@ -81,7 +79,7 @@ def main(argv=None) -> dict:
         names.insert(0, REFERENCE)
     load_start = os.getloadavg()
     log, r_min, r_max, az, seq, key = prepare(args.log, cfg)
-    stats, spec, p_out = build_stats(log, cfg, r_min, r_max)
+    stats, spec, p_out = mapping_stats(log, cfg, r_min, r_max)
     cache = MapCache(stats, cfg, p_out)
     n_steps = int(seq["z"].shape[0])
     results = {}
@@ -98,8 +96,7 @@ def main(argv=None) -> dict:
         def call(compiled=compiled, state=state):
             return compiled(state, seq["controls"], seq["z"])
 
-        jax.block_until_ready(call())
-        timed = policy.measure(name, lambda call=call: time_calls(call, args.repeats))
+        timed = policy.time_calls(name, call, args.repeats)  # one untimed warm-up call first
         results[name] = {
             "particles": n,
             "ms_per_step": 1e3 * timed["median_s"] / n_steps,
@@ -132,8 +129,7 @@ def main(argv=None) -> dict:
         "variants": results,
         "load_policy": policy.summary() if hasattr(policy, "summary") else None,
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(report, indent=2))
+    write_json(args.out, report)
     print("\n| variant | particles | ms/step | × dec 300 | load |\n|---|---|---|---|---|")
     for k, r in results.items():
         print(

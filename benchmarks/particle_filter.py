@@ -36,26 +36,29 @@ is printed.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
-import statistics
-import sys
 import time
 from pathlib import Path
-
-if __package__ in (None, ""):  # run as a script: make `benchmarks` and `lidarjax` importable
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jaxlie
 import numpy as np
-from _harness import add_policy_args, native_info, policy_from_args, ratio, time_calls, warm
-from _machine import machine_info
+from _harness import (
+    add_policy_args,
+    machine_info,
+    max_abs_diff,
+    native_info,
+    policy_from_args,
+    ratio,
+    time_calls,
+    warm,
+    write_json,
+)
+from _numpy_pf import NumpyParticleFilter, scan_log_likelihoods
 
-from benchmarks._numpy_pf import NumpyParticleFilter, scan_log_likelihoods
 from lidarjax import maps
 from lidarjax.datasets import fetch, load_carmen
 from lidarjax.localization import (
@@ -101,28 +104,36 @@ def _boundary_ties(poses, ranges, azimuths, kind, origin, res) -> np.ndarray:
 
 
 def _compare(jax_rays, np_rays, ties) -> dict:
-    """Per-ray and per-particle agreement of the JAX (float32) and NumPy (float64) values."""
+    """Per-ray and per-particle agreement of the JAX (float32) and NumPy (float64) values,
+    with and without the boundary-tie rays (:func:`_harness.max_abs_diff` of the ``[n b]``
+    rays and of the ``[n]`` per-particle sums)."""
     j = np.asarray(jax_rays, np.float64)
-    diff = np.abs(j - np_rays)
-    rel = diff / np.maximum(np.abs(np_rays), 1.0)
-    sums_j, sums_n = j.sum(1), np_rays.sum(1)
-    rel_sum = np.abs(sums_j - sums_n) / np.maximum(np.abs(sums_n), 1.0)
     keep = ~ties
-    sj, sn = np.where(keep, j, 0.0).sum(1), np.where(keep, np_rays, 0.0).sum(1)
-    rel_sum_nt = np.abs(sj - sn) / np.maximum(np.abs(sn), 1.0)
+    n_gt = "n_rel_diff_gt_1e-3"  # the count above CHECK_RTOL in max_abs_diff's record
+    rays = max_abs_diff(j, np_rays, rel_tol=CHECK_RTOL)
+    sums = max_abs_diff(j.sum(1), np_rays.sum(1), rel_tol=CHECK_RTOL)
+    rays_nt = max_abs_diff(j[keep], np_rays[keep], rel_tol=CHECK_RTOL)
+    sums_nt = max_abs_diff(np.where(keep, j, 0.0).sum(1), np.where(keep, np_rays, 0.0).sum(1))
+    nonfinite = rays["n_finite_mismatch"] + rays["n_mismatch_both_nonfinite"]
     return {
         "n_particles": int(j.shape[0]),
         "n_rays": int(j.size),
-        "max_abs_diff_sum": float(np.abs(sums_j - sums_n).max()),
-        "max_rel_diff_sum": float(rel_sum.max()),
-        "n_particles_rel_diff_sum_gt_1e-3": int((rel_sum > CHECK_RTOL).sum()),
-        "max_abs_diff_ray": float(diff.max()),
-        "n_rays_rel_diff_gt_1e-3": int((rel > CHECK_RTOL).sum()),
+        "max_abs_diff_sum": sums["max_abs_diff"],
+        "max_rel_diff_sum": sums["max_rel_diff"],
+        "n_particles_rel_diff_sum_gt_1e-3": sums[n_gt],
+        "max_abs_diff_ray": rays["max_abs_diff"],
+        "n_rays_rel_diff_gt_1e-3": rays[n_gt],
         "n_boundary_tie_rays": int(ties.sum()),
-        "n_rays_rel_diff_gt_1e-3_not_ties": int(((rel > CHECK_RTOL) & keep).sum()),
-        "max_abs_diff_ray_not_ties": float(diff[keep].max()) if keep.any() else 0.0,
-        "max_rel_diff_sum_without_ties": float(rel_sum_nt.max()),
-        "agree": bool(rel_sum_nt.max() <= CHECK_RTOL),
+        "n_rays_rel_diff_gt_1e-3_not_ties": rays_nt[n_gt],
+        "max_abs_diff_ray_not_ties": rays_nt["max_abs_diff"] or 0.0,
+        "max_rel_diff_sum_without_ties": sums_nt["max_rel_diff"],
+        "rays": rays,
+        "sums": sums,
+        "agree": bool(
+            nonfinite == 0
+            and sums_nt["max_rel_diff"] is not None
+            and sums_nt["max_rel_diff"] <= CHECK_RTOL
+        ),
     }
 
 
@@ -132,23 +143,22 @@ def _scan_period(timestamps) -> float:
 
 
 def _timed_steps(step, state, controls, zs, truth, k0: int, n_steps: int) -> dict:
-    """``n_steps`` warm steps from ``state`` on scans ``k0 + 1 ...`` (a rerun repeats them)."""
-    times, errs, k = [], [], k0
-    for _ in range(n_steps):
-        k += 1
-        t0 = time.perf_counter()
-        state, info = jax.block_until_ready(step(state, controls[k], zs[k]))
-        times.append(time.perf_counter() - t0)
-        est = np.asarray(to_vector(info.estimate))
+    """``n_steps`` warm steps from ``state`` on scans ``k0 + 1 ...`` (a rerun repeats them),
+    each timed by :func:`_harness.time_calls`; the estimate errors are taken afterwards."""
+    carry = {"state": state, "k": k0, "estimates": []}
+
+    def one_step():
+        k = carry["k"] = carry["k"] + 1
+        carry["state"], info = out = step(carry["state"], controls[k], zs[k])
+        carry["estimates"].append((k, info.estimate))
+        return out
+
+    timed = time_calls(one_step, n_steps, warmup=0)
+    errs = []
+    for k, estimate in carry["estimates"]:
+        est = np.asarray(to_vector(estimate))
         errs.append(float(np.hypot(*(est[:2] - truth[k, :2]))))
-    return {
-        "times_s": times,
-        "median_s": statistics.median(times),
-        "best_s": min(times),
-        "estimate_error_m": errs,
-        "_state": state,
-        "_k": k,
-    }
+    return {**timed, "estimate_error_m": errs, "_state": carry["state"], "_k": carry["k"]}
 
 
 def main(argv=None) -> dict:
@@ -268,9 +278,8 @@ def main(argv=None) -> dict:
                 return measure(sensor, particles, z)
 
             ray_lls[label], _ = warm(call)
-            timed = policy.measure(
-                f"{n} {label} measurement",
-                lambda call=call: time_calls(call, 7 if n <= 3000 else 1),
+            timed = policy.time_calls(
+                f"{n} {label} measurement", call, 7 if n <= 3000 else 1, warmup=0
             )
             e = entry[label]
             e["measurement_only_s"] = timed["median_s"]
@@ -283,31 +292,30 @@ def main(argv=None) -> dict:
             if label in ray_lls and "jax" in ray_lls:
                 a = np.asarray(ray_lls[label], np.float64)
                 b = np.asarray(ray_lls["jax"], np.float64)
-                rel = np.abs(a - b) / np.maximum(np.abs(b), 1.0)
+                rays = max_abs_diff(a, b, rel_tol=CHECK_RTOL)
+                sums = max_abs_diff(a.sum(1), b.sum(1))
                 entry[label]["vs_jax_rays"] = {
-                    "max_abs_diff_ray": float(np.abs(a - b).max()),
-                    "n_rays_rel_diff_gt_1e-3": int((rel > CHECK_RTOL).sum()),
-                    "max_rel_diff_sum": float(
-                        (np.abs(a.sum(1) - b.sum(1)) / np.maximum(np.abs(b.sum(1)), 1.0)).max()
-                    ),
+                    "max_abs_diff_ray": rays["max_abs_diff"],
+                    "n_rays_rel_diff_gt_1e-3": rays["n_rel_diff_gt_1e-3"],
+                    "max_rel_diff_sum": sums["max_rel_diff"],
+                    "rays": rays,
                 }
 
         # NumPy step from the same initial particles over the same scans
         def np_block(n=n, p0=p0):
-            rng = np.random.default_rng(n)
-            parts, lw = p0, np.full(n, -math.log(n))
-            times = []
+            carry = {"rng": np.random.default_rng(n), "parts": p0, "lw": np.full(n, -math.log(n))}
+            carry["i"] = 0
+
+            def np_step():
+                i = carry["i"]
+                carry["parts"], carry["lw"], _, _, _ = npf.step(
+                    carry["rng"], carry["parts"], carry["lw"], controls[START + i], zs[START + i]
+                )
+                carry["i"] = i + 1
+
             n_run = np_steps[n] + (1 if n <= 3000 else 0)
-            for i in range(n_run):
-                t0 = time.perf_counter()
-                parts, lw, _, _, _ = npf.step(rng, parts, lw, controls[START + i], zs[START + i])
-                if i or n_run == 1:  # the first step only mirrors the JAX warm-up step
-                    times.append(time.perf_counter() - t0)
-            return {
-                "times_s": times,
-                "median_s": statistics.median(times),
-                "best_s": min(times),
-            }
+            warmup = 1 if n_run > 1 else 0  # the first step only mirrors the JAX warm-up step
+            return time_calls(np_step, n_run - warmup, warmup=warmup)
 
         np_t = policy.measure(f"{n} numpy step", np_block)
         s_np = np_t["median_s"]
@@ -373,10 +381,10 @@ def main(argv=None) -> dict:
         holder = {}
 
         def run_block(pf=pf, state0=state0, holder=holder):
-            t0 = time.perf_counter()
-            holder["out"] = jax.block_until_ready(pf.run(state0, c, m))
-            dt = time.perf_counter() - t0
-            return {"times_s": [dt], "median_s": dt, "best_s": dt}
+            timed, holder["out"] = time_calls(
+                lambda: pf.run(state0, c, m), 1, warmup=0, return_output=True
+            )
+            return timed
 
         timed = policy.measure(f"run {label}", run_block)
         run_wall = timed["median_s"]
@@ -448,8 +456,7 @@ def main(argv=None) -> dict:
         "load_policy": policy.summary(),
         "wall_time_s": time.perf_counter() - t_start,
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(report, indent=2) + "\n")
+    write_json(args.out, report)
 
     def f(e, key, fmt):
         v = e.get(key)

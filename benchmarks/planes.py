@@ -31,8 +31,6 @@ Writes ``--out`` (default ``benchmarks/results/planes.json``) and a Markdown tab
 from __future__ import annotations
 
 import argparse
-import json
-import time
 from pathlib import Path
 
 import jax
@@ -40,20 +38,17 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
+from _harness import machine_info, time_calls, write_json  # noqa: E402
 
-from lidarjax.datasets import fetch, load_synpeb_pcd, synpeb_scan  # noqa: E402
+from lidarjax.datasets import fetch, load_synpeb_pcd  # noqa: E402
 from lidarjax.features import (  # noqa: E402
     estimate_noise,
     extract_planes,
-    extract_planes_reference,
     msac_planes,
     peac_planes,
 )
-
-try:  # run as a script (python benchmarks/planes.py) or as a module
-    from _machine import machine_info
-except ImportError:  # pragma: no cover
-    from benchmarks._machine import machine_info
+from lidarjax.features._ppe_reference import extract_planes_reference  # noqa: E402
+from lidarjax.sim import synpeb_scan  # noqa: E402
 
 DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "planes.json"
 PAPER_PPE_S = 1.6 * 3600  # 500 x 500, one 2.6 GHz Xeon core, MATLAB (section 11.5)
@@ -62,26 +57,24 @@ E = 0.01
 D = 0.1
 
 
-def _time(fn, repeats: int) -> tuple[float, object]:
-    times, out = [], None
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        out = fn()
-        times.append(time.perf_counter() - t0)
-    return float(np.median(times)), out
-
-
 def bench_scan(points: np.ndarray, e: float, repeats: int, big: bool) -> dict:
     K = int(points.shape[0] * points.shape[1])
     extract_planes(points, max_increment=e, max_distance_m=D)  # warm-up (compilation)
-    t_greedy, seg = _time(
-        lambda: extract_planes(points, max_increment=e, max_distance_m=D, refit=False), repeats
+    greedy, seg = time_calls(
+        lambda: extract_planes(points, max_increment=e, max_distance_m=D, refit=False),
+        repeats,
+        warmup=0,
+        return_output=True,
     )
-    t_full, seg_full = _time(
-        lambda: extract_planes(points, max_increment=e, max_distance_m=D), repeats
+    full, seg_full = time_calls(
+        lambda: extract_planes(points, max_increment=e, max_distance_m=D),
+        repeats,
+        warmup=0,
+        return_output=True,
     )
-    t_msac, _ = _time(lambda: msac_planes(points), 1 if big else repeats)
-    t_peac, _ = _time(lambda: peac_planes(points), repeats)
+    t_greedy, t_full = greedy["median_s"], full["median_s"]
+    t_msac = time_calls(lambda: msac_planes(points), 1 if big else repeats, warmup=0)["median_s"]
+    t_peac = time_calls(lambda: peac_planes(points), repeats, warmup=0)["median_s"]
     steps = int(seg.step_costs.size)
     return dict(
         shape=list(points.shape[:2]),
@@ -104,12 +97,19 @@ def bench_reference(points: np.ndarray, sizes: list[int], repeats: int) -> dict:
     for n in sizes:
         sub = points[:n, :n]
         extract_planes(sub, max_increment=E, max_distance_m=D, refit=False)
-        t_fast, fast = _time(
-            lambda: extract_planes(sub, max_increment=E, max_distance_m=D, refit=False), repeats
+        t_fast, fast = time_calls(
+            lambda: extract_planes(sub, max_increment=E, max_distance_m=D, refit=False),
+            repeats,
+            warmup=0,
+            return_output=True,
         )
-        t_ref, ref = _time(
-            lambda: extract_planes_reference(sub, max_increment=E, max_distance_m=D), 1
+        t_ref, ref = time_calls(
+            lambda: extract_planes_reference(sub, max_increment=E, max_distance_m=D),
+            1,
+            warmup=0,
+            return_output=True,
         )
+        t_fast, t_ref = t_fast["median_s"], t_ref["median_s"]
         same = bool(np.array_equal(fast.labels, ref.labels))
         rows.append(
             dict(
@@ -166,8 +166,7 @@ def main(argv: list[str] | None = None) -> None:
             ppe_s=PAPER_PPE_S, msac_s=PAPER_MSAC_S, ppe_ratio=PAPER_PPE_S / s["ppe_s"]
         )
         results["goal_60s_met"] = bool(s["ppe_s"] <= 60.0)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(results, indent=2))
+    write_json(args.out, results)
     md = markdown(results)
     args.out.with_suffix(".md").write_text(md)
     print(md)

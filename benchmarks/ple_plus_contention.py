@@ -20,9 +20,10 @@ import os
 import subprocess
 import sys
 import time
-from pathlib import Path
 
-OUT = Path(__file__).resolve().parent / "results" / "ple_plus_contention.json"
+from _harness import RESULTS, machine_info, write_json
+
+OUT = RESULTS / "ple_plus_contention.json"
 
 WORKER = r"""
 import json, sys, time
@@ -101,10 +102,15 @@ def main(argv=None) -> None:
             r = rows[-1]
             print(f"{'loaded' if loaded else 'idle':6s} {pin:8s} load {r['load_1min_before']:.2f}: "
                   f"median {r['median_s']:.3f} s, max {r['max_s']:.3f} s", flush=True)  # fmt: skip
-    OUT.parent.mkdir(parents=True, exist_ok=True)
     out = OUT.with_name(OUT.stem + ("_thorough" if args.thorough else "") + ".json")
-    res = {"cpu_count": os.cpu_count(), "optimize_polylines_kwargs": kw, "rows": rows}
-    out.write_text(json.dumps(res, indent=2) + "\n")
+    res = {
+        "cpu_count": os.cpu_count(),
+        "optimize_polylines_kwargs": kw,
+        "rows": rows,
+        # after the timed subprocesses, so that this process starts no JAX client before them
+        "machine": machine_info(),
+    }
+    write_json(out, res)
 
 
 if __name__ == "__main__":

@@ -40,63 +40,43 @@ import dataclasses
 import json
 import math
 import os
-import sys
 import time
 from pathlib import Path
 
-if __package__ in (None, ""):  # run as a script: make `benchmarks` and `lidarjax` importable
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-import equinox as eqx  # noqa: E402
-import jax  # noqa: E402
-import jax.numpy as jnp  # noqa: E402
-import jaxlie  # noqa: E402
-import numpy as np  # noqa: E402
-import scipy.ndimage as ndi  # noqa: E402
-import scipy.special  # noqa: E402
-from scipy.spatial import cKDTree  # noqa: E402
-
-from lidarjax.datasets import (  # noqa: E402
-    hdl32e,
-    load_urban_trajectory,
-    make_urban_world,
-    simulate_urban_scan,
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jaxlie
+import numpy as np
+import scipy.ndimage as ndi
+import scipy.special
+from _harness import (
+    LoadPolicy,
+    add_policy_args,
+    machine_info,
+    max_abs_diff,
+    native_info,
+    policy_from_args,
+    ratio,
+    write_json,
 )
-from lidarjax.features import PoleConfig, extract_poles, local_map_spec  # noqa: E402
-from lidarjax.features._poles import _poles_from_scores, fast_occupancy, pole_score_maps  # noqa: E402
-from lidarjax.localization import (  # noqa: E402
+from _numpy_reference import accumulate_numpy
+from scipy.spatial import cKDTree
+
+from lidarjax.datasets import load_urban_trajectory
+from lidarjax.features import PoleConfig, extract_poles, local_map_spec
+from lidarjax.features._poles import _poles_from_scores, fast_occupancy, pole_score_maps
+from lidarjax.localization import (
     OdometryMotionModel,
     ParticleFilter,
     ParticleState,
     PoleMeasurementModel,
     from_vector,
 )
-from lidarjax.maps import beta_posterior, occupancy  # noqa: E402
-from lidarjax.rays import HIT, RayBatch, from_spinning_scan  # noqa: E402
-from lidarjax.raytrace import accumulate  # noqa: E402
-
-try:  # run as a script or as a module
-    from _harness import (
-        LoadPolicy,
-        add_policy_args,
-        native_info,
-        policy_from_args,
-        ratio,
-        time_calls,
-    )
-    from _machine import machine_info
-    from _numpy_reference import accumulate_numpy
-except ImportError:  # pragma: no cover
-    from benchmarks._harness import (
-        LoadPolicy,
-        add_policy_args,
-        native_info,
-        policy_from_args,
-        ratio,
-        time_calls,
-    )
-    from benchmarks._machine import machine_info
-    from benchmarks._numpy_reference import accumulate_numpy
+from lidarjax.maps import beta_posterior, occupancy
+from lidarjax.rays import HIT, RayBatch, from_spinning_scan
+from lidarjax.raytrace import accumulate
+from lidarjax.sim import hdl32e, make_urban_world, simulate_urban_scan
 
 DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "poles.json"
 PAPER_EXTRACT_S = 1.33  # per local map, quad-core PC with GPU (section 12.5.1)
@@ -105,25 +85,6 @@ GOAL_ACCUMULATE_S = 0.040  # native ray tracing of one local map, 2 cores
 GOAL_EXTRACT_S = 0.100  # native pole extraction of one local map, 2 cores
 VARIANTS = (("native_1t", "native", 1), ("native_2t", "native", 2), ("jax", "jax", None))
 _POLICY = LoadPolicy(budget_s=0.0)  # replaced in main()
-
-
-def _median_time(fn, repeats: int, label: str = "", record: dict | None = None):
-    """Warm-up call, then ``repeats`` timed calls under the load policy: ``(median, out)``.
-
-    The block's timings and load record go into ``record[label]`` when given."""
-    first_t0 = time.perf_counter()
-    out = jax.block_until_ready(fn())  # warm-up / compile
-    first = time.perf_counter() - first_t0
-    timed = _POLICY.measure(label or "block", lambda: time_calls(fn, repeats))
-    if record is not None:
-        record[label] = {
-            "median_s": timed["median_s"],
-            "best_s": timed["best_s"],
-            "first_call_s": first,
-            "times_s": timed["times_s"],
-            "load": timed["load"],
-        }
-    return float(timed["median_s"]), out
 
 
 def _poles_match(a, b, tol_m: float = 0.05) -> dict:
@@ -224,17 +185,19 @@ def bench_extraction(world, gt, lidar, repeats: int) -> dict:
                 s, r, chunk_size=c.chunk_size, backend=c.backend, threads=c.threads
             )
         )
-        try:
-            t_acc, stats = _median_time(
-                lambda acc=acc: acc(rays, spec), repeats, f"ray_tracing {label}", blocks
+        b_acc, b_total = f"ray_tracing {label}", f"extract {label}"
+        try:  # one warm-up call each, then `repeats` timed calls under the load policy
+            blocks[b_acc], stats = _POLICY.time_calls(
+                b_acc, lambda acc=acc: acc(rays, spec), repeats, return_output=True
             )
-            t_total, poles = _median_time(
-                lambda c=c: extract_poles(rays, spec, c), repeats, f"extract {label}", blocks
+            blocks[b_total], poles = _POLICY.time_calls(
+                b_total, lambda c=c: extract_poles(rays, spec, c), repeats, return_output=True
             )
         except Exception as e:  # noqa: BLE001 - recorded; the other paths still count
             backends[label] = {"error": f"{type(e).__name__}: {e}"}
             print(f"{label} FAILED: {e}", flush=True)
             continue
+        t_acc, t_total = blocks[b_acc]["median_s"], blocks[b_total]["median_s"]
         poles_by[label], stats_by[label] = poles, stats
         visits = int(np.asarray(stats.hits, np.int64).sum() + np.asarray(stats.misses).sum())
         backends[label] = {
@@ -278,12 +241,21 @@ def bench_extraction(world, gt, lidar, repeats: int) -> dict:
     # backend-independent stages, on the reference backend's statistics
     occ_fast = jax.jit(lambda st: fast_occupancy(beta_posterior(st), cfg.mu_o))
     occ_plain = jax.jit(lambda st: occupancy(beta_posterior(st), cfg.mu_o))
-    t_occ, occ = _median_time(lambda: occ_fast(stats), repeats, "occupancy_table", blocks)
-    t_occ_plain, _ = _median_time(lambda: occ_plain(stats), repeats, "occupancy_per_voxel", blocks)
+    blocks["occupancy_table"], occ = _POLICY.time_calls(
+        "occupancy_table", lambda: occ_fast(stats), repeats, return_output=True
+    )
+    blocks["occupancy_per_voxel"] = _POLICY.time_calls(
+        "occupancy_per_voxel", lambda: occ_plain(stats), repeats
+    )
     post = jax.jit(
         lambda o: _poles_from_scores(pole_score_maps(o, cfg.widths, cfg.free_cells), cfg)
     )
-    t_post, _ = _median_time(lambda: post(occ), repeats, "scores_and_mean_shift", blocks)
+    blocks["scores_and_mean_shift"] = _POLICY.time_calls(
+        "scores_and_mean_shift", lambda: post(occ), repeats
+    )
+    t_occ = blocks["occupancy_table"]["median_s"]
+    t_occ_plain = blocks["occupancy_per_voxel"]["median_s"]
+    t_post = blocks["scores_and_mean_shift"]["median_s"]
 
     # NumPy / SciPy references of the same stages
     sub = min(n_rays, 20_000)
@@ -293,8 +265,7 @@ def bench_extraction(world, gt, lidar, repeats: int) -> dict:
     k = np.asarray(rays.kind)[:sub]
 
     def np_acc():
-        t0 = time.perf_counter()
-        accumulate_numpy(
+        return accumulate_numpy(
             np.asarray(spec.origin, float),
             spec.resolution,
             spec.shape,
@@ -304,11 +275,9 @@ def bench_extraction(world, gt, lidar, repeats: int) -> dict:
             k == HIT,
             np.ones(sub, bool),
         )
-        dt = (time.perf_counter() - t0) * n_rays / sub
-        return {"times_s": [dt], "median_s": dt, "best_s": dt}
 
-    np_acc_t = _POLICY.measure("numpy ray_tracing (extrapolated)", np_acc)
-    t_np_acc = np_acc_t["median_s"]
+    np_acc_t = _POLICY.time_calls(f"numpy ray_tracing ({sub} rays)", np_acc, 1, warmup=0)
+    t_np_acc = np_acc_t["median_s"] * n_rays / sub  # extrapolated to all rays
     h, m = np.asarray(stats.hits), np.asarray(stats.misses)
     t0 = time.perf_counter()
     occ_np = numpy_occupancy(h, m, cfg.mu_o)
@@ -318,6 +287,8 @@ def bench_extraction(world, gt, lidar, repeats: int) -> dict:
     t_np_scores = time.perf_counter() - t0
     q_jax = np.asarray(pole_score_maps(jnp.asarray(occ_np), cfg.widths, cfg.free_cells))
     np_total = t_np_acc + t_np_occ + t_np_scores
+    occ_diff = max_abs_diff(np.asarray(occ, float), occ_np)
+    scores_diff = max_abs_diff(q_jax, q_np)
     for e in backends.values():
         if "extract_s" in e and e["backend"] == "native":
             e["native_over_numpy_ray_tracing"] = t_np_acc / e["ray_tracing_s"]
@@ -357,8 +328,10 @@ def bench_extraction(world, gt, lidar, repeats: int) -> dict:
             "score_maps": t_np_scores,
             "load_ray_tracing": np_acc_t["load"]["load_1min"],
         },
-        "numpy_occupancy_max_abs_diff": float(np.max(np.abs(occ_np - np.asarray(occ, float)))),
-        "numpy_scores_max_abs_diff": float(np.max(np.abs(q_np - q_jax))),
+        "numpy_occupancy_max_abs_diff": occ_diff["max_abs_diff"],
+        "numpy_scores_max_abs_diff": scores_diff["max_abs_diff"],
+        "numpy_occupancy_diff": occ_diff,
+        "numpy_scores_diff": scores_diff,
         "speedup_vs_numpy": np_total / main["extract_s"],
         "speedup_vs_paper": PAPER_EXTRACT_S / main["extract_s"],
         "jax_extract_s": jx.get("extract_s"),
@@ -413,9 +386,12 @@ def bench_filter(world, gt, repeats: int, n_particles: int = 5000, n_poles: int 
         parts, jnp.full(n_particles, -math.log(n_particles), dtype), jax.random.key(0)
     )
     step = eqx.filter_jit(lambda st: pf.step(st, jnp.asarray([0.8, 0.0, 0.01], dtype), z))
-    t_step, _ = _median_time(lambda: step(state), repeats, "pf step")
+    t_step = _POLICY.time_calls("pf step", lambda: step(state), repeats)["median_s"]
     meas = jax.jit(lambda p: model(p, z))
-    t_meas, ll = _median_time(lambda: meas(parts), repeats, "pf measurement")
+    t_meas, ll = _POLICY.time_calls(
+        "pf measurement", lambda: meas(parts), repeats, return_output=True
+    )
+    t_meas = t_meas["median_s"]
     tree = cKDTree(lm)
     args = (model.var_m2.item(), model.eps.item(), model.d_max_m)
     t0 = time.perf_counter()
@@ -425,6 +401,7 @@ def bench_filter(world, gt, repeats: int, n_particles: int = 5000, n_poles: int 
     t0 = time.perf_counter()
     loop_measurement(parts_np[:n_loop], poles, tree, *args)
     t_loop = (time.perf_counter() - t0) * n_particles / n_loop
+    ll_diff = max_abs_diff(np.asarray(ll), ref)
     return {
         "n_particles": n_particles,
         "n_online_poles": n_poles,
@@ -434,7 +411,8 @@ def bench_filter(world, gt, repeats: int, n_particles: int = 5000, n_poles: int 
         "measurement_ms": 1e3 * t_meas,
         "numpy_kdtree_measurement_ms": 1e3 * t_np,
         "per_particle_loop_measurement_ms": 1e3 * t_loop,
-        "max_abs_loglik_diff_vs_numpy": float(np.max(np.abs(np.asarray(ll) - ref))),
+        "max_abs_loglik_diff_vs_numpy": ll_diff["max_abs_diff"],
+        "loglik_diff_vs_numpy": ll_diff,
         "speedup_measurement_vs_numpy": t_np / t_meas,
         "speedup_measurement_vs_loop": t_loop / t_meas,
         "speedup_measurement_vs_paper": PAPER_MEASURE_S / t_meas,
@@ -442,9 +420,9 @@ def bench_filter(world, gt, repeats: int, n_particles: int = 5000, n_poles: int 
 
 
 def bench_simulator(world, gt, lidar, repeats: int) -> dict:
-    t, _ = _median_time(
-        lambda: simulate_urban_scan(world, gt[400], lidar, seed=1).ranges_m, repeats, "simulator"
-    )
+    t = _POLICY.time_calls(
+        "simulator", lambda: simulate_urban_scan(world, gt[400], lidar, seed=1).ranges_m, repeats
+    )["median_s"]
     return {"s_per_scan": t, "rays_per_scan": lidar.n_rays}
 
 
@@ -472,8 +450,7 @@ def main() -> None:
     res["load_policy"] = _POLICY.summary()
     res["load_average_end"] = list(os.getloadavg())
     res["wall_time_s"] = time.perf_counter() - t_start
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(res, indent=2) + "\n")
+    write_json(args.out, res)
     e, f, s = res["extraction"], res["filter"], res["simulator"]
     st, ns = e["stages_s"], e["numpy_s"]
     np_total = ns["ray_tracing_extrapolated"] + ns["occupancy"] + ns["score_maps"]

@@ -68,15 +68,11 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import statistics
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
-
-if __package__ in (None, ""):  # run as a script: make `benchmarks` and `lidarjax` importable
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import jax
 
@@ -84,16 +80,11 @@ jax.config.update("jax_enable_x64", True)  # before any array is created
 
 import jaxlie  # noqa: E402
 import numpy as np  # noqa: E402
-from _machine import machine_info  # noqa: E402
+from _harness import machine_info, time_calls, time_stats, warm, write_json  # noqa: E402
+from _numpy_ple import ple_numpy  # noqa: E402
 
-from benchmarks._numpy_ple import ple_numpy  # noqa: E402
 from lidarjax import rays as lr  # noqa: E402
-from lidarjax.datasets import (  # noqa: E402
-    fetch,
-    load_carmen,
-    random_polygon,
-    simulate_polygon_scan,
-)
+from lidarjax.datasets import fetch, load_carmen  # noqa: E402
 from lidarjax.features import (  # noqa: E402
     extract_polylines,
     is_full_revolution,
@@ -102,6 +93,7 @@ from lidarjax.features import (  # noqa: E402
     split_and_merge,
     visvalingam,
 )
+from lidarjax.sim import random_polygon, simulate_polygon_scan  # noqa: E402
 
 DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "polylines.json"
 
@@ -202,29 +194,11 @@ def simulated_scans(n: int) -> Scans:
 # ------------------------------------------------------------------ helpers
 
 
-def _machine() -> dict:
-    return machine_info(xla_flags=os.environ.get("XLA_FLAGS", ""))
-
-
-def _timed(fn, repeats: int) -> tuple[list[float], object]:
-    times, out = [], None
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        out = jax.block_until_ready(fn())
-        times.append(time.perf_counter() - t0)
-    return times, out
-
-
 def _summary(per_scan: list[float], k: int, **extra) -> dict:
-    med = statistics.median(per_scan)
-    return {
-        **extra,
-        "per_scan_s": per_scan,
-        "median_s": med,
-        "min_s": min(per_scan),
-        "max_s": max(per_scan),
-        "rays_per_s": k / med,
-    }
+    """:func:`_harness.time_stats` over the scans' median seconds, and rays/s."""
+    stats = time_stats(per_scan)
+    per_scan = stats.pop("times_s")
+    return {**extra, "per_scan_s": per_scan, **stats, "rays_per_s": k / stats["median_s"]}
 
 
 def _ple(rays: lr.RayBatch, j: int, closed: bool):
@@ -350,27 +324,21 @@ def run_case(sc: Scans, j: int, repeats: int) -> dict:
     s, k = sc.n_scans, sc.k
     out: dict = {"J": j}
 
-    # -- JAX PLE, one scan per call
-    t0 = time.perf_counter()
-    jax.block_until_ready(_ple(sc.single[0], j, sc.closed))
-    first = time.perf_counter() - t0
+    # -- JAX PLE, one scan per call (each scan: one untimed warm-up call, then `repeats`)
+    _, first = warm(lambda: _ple(sc.single[0], j, sc.closed))
     single_res, ple_single = [], []
     for rays in sc.single:
-        jax.block_until_ready(_ple(rays, j, sc.closed))  # warm-up
-        times, res = _timed(lambda r=rays: _ple(r, j, sc.closed), repeats)
+        t, res = time_calls(lambda r=rays: _ple(r, j, sc.closed), repeats, return_output=True)
         single_res.append(res)
-        ple_single.append(statistics.median(times))
+        ple_single.append(t["median_s"])
     out["jax_ple_single"] = _summary(ple_single, k, first_call_s=first)
 
     # -- JAX PLE, all scans in one call
-    t0 = time.perf_counter()
-    jax.block_until_ready(_ple(sc.batch, j, sc.closed))
-    first = time.perf_counter() - t0
-    times, batch_res = _timed(lambda: _ple(sc.batch, j, sc.closed), repeats)
-    med = statistics.median(times)
+    t, batch_res = time_calls(lambda: _ple(sc.batch, j, sc.closed), repeats, return_output=True)
+    med = t["median_s"]
     out["jax_ple_batched"] = {
-        "first_call_s": first,
-        "batch_times_s": times,
+        "first_call_s": t["first_call_s"],
+        "batch_times_s": t["times_s"],
         "median_s": med / s,
         "rays_per_s": k * s / med,
     }
@@ -379,12 +347,8 @@ def run_case(sc: Scans, j: int, repeats: int) -> dict:
     np_times, exact, ties, rel, batch_vs_single = [], 0, 0, 0.0, 0
     final_j, removals = [], []
     for i in range(s):
-        ts, npo = [], None
-        for _ in range(repeats):
-            t0 = time.perf_counter()
-            npo = _numpy(sc, i, j)
-            ts.append(time.perf_counter() - t0)
-        np_times.append(statistics.median(ts))
+        t, npo = time_calls(lambda i=i: _numpy(sc, i, j), repeats, warmup=0, return_output=True)
+        np_times.append(t["median_s"])
         c = compare((_jax_order(single_res[i]), *_jax_map(single_res[i])), npo, strict=False)
         exact += c["exact"]
         ties += c["tie"]
@@ -408,31 +372,26 @@ def run_case(sc: Scans, j: int, repeats: int) -> dict:
     out["removals_per_scan_mean"] = float(np.mean(removals))
 
     # -- PLE+, one scan per call and batched
-    t0 = time.perf_counter()
-    jax.block_until_ready(optimize_polylines(single_res[0], sc.single[0]))
-    first = time.perf_counter() - t0
+    _, first = warm(lambda: optimize_polylines(single_res[0], sc.single[0]))
     plus_single = []
-    for res, rays in zip(single_res, sc.single):
-        jax.block_until_ready(optimize_polylines(res, rays))  # warm-up (n_params bucket)
-        times, _ = _timed(lambda a=res, b=rays: optimize_polylines(a, b), repeats)
-        plus_single.append(statistics.median(times))
+    for res, rays in zip(single_res, sc.single):  # warm-up per scan (n_params bucket)
+        t = time_calls(lambda a=res, b=rays: optimize_polylines(a, b), repeats)
+        plus_single.append(t["median_s"])
     out["jax_ple_plus_single"] = _summary(plus_single, k, first_call_s=first)
     out["ple_then_plus_single"] = _summary([a + b for a, b in zip(ple_single, plus_single)], k)
     # PLE+ without its restarts and pattern moves (descent from PLE's vertices only)
     fast = []
     for res, rays in zip(single_res, sc.single):
-        jax.block_until_ready(optimize_polylines(res, rays, **PLUS_FAST))
-        times, _ = _timed(lambda a=res, b=rays: optimize_polylines(a, b, **PLUS_FAST), repeats)
-        fast.append(statistics.median(times))
+        t = time_calls(lambda a=res, b=rays: optimize_polylines(a, b, **PLUS_FAST), repeats)
+        fast.append(t["median_s"])
     out["jax_ple_plus_fast_single"] = _summary(fast, k, options=str(PLUS_FAST))
-    t0 = time.perf_counter()
-    jax.block_until_ready(optimize_polylines(batch_res, sc.batch))
-    first = time.perf_counter() - t0
-    times, plus = _timed(lambda: optimize_polylines(batch_res, sc.batch), repeats)
-    med = statistics.median(times)
+    t, plus = time_calls(
+        lambda: optimize_polylines(batch_res, sc.batch), repeats, return_output=True
+    )
+    med = t["median_s"]
     out["jax_ple_plus_batched"] = {
-        "first_call_s": first,
-        "batch_times_s": times,
+        "first_call_s": t["first_call_s"],
+        "batch_times_s": t["times_s"],
         "median_s": med / s,
         "rays_per_s": k * s / med,
         "sse_after_over_before_median": float(
@@ -451,12 +410,7 @@ def run_case(sc: Scans, j: int, repeats: int) -> dict:
             "sam": lambda p=pts: split_and_merge(p, sc.closed, j),
         }
         for name, fn in calls.items():
-            ts = []
-            for _ in range(repeats):
-                t0 = time.perf_counter()
-                fn()
-                ts.append(time.perf_counter() - t0)
-            base[name].append(statistics.median(ts))
+            base[name].append(time_calls(fn, repeats, warmup=0)["median_s"])
     for name, ts in base.items():
         out[name] = _summary(ts, k)
 
@@ -612,7 +566,7 @@ def main(argv: list[str] | None = None) -> None:
     n_scans = 2 if args.quick else 20
     repeats = args.repeats or (1 if args.quick else 3)
     results: dict = {
-        "machine": _machine(),
+        "machine": machine_info(),
         "quick": args.quick,
         "settings": {
             "n_scans": n_scans,
@@ -645,8 +599,7 @@ def main(argv: list[str] | None = None) -> None:
     results["goals"] = goals(results)
     results["wall_time_s"] = time.perf_counter() - t_start
 
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(results, indent=2) + "\n")
+    write_json(args.out, results)
     print(markdown(results))
     print(f"\n(wall time {results['wall_time_s']:.0f} s; JSON: {args.out})")
 

@@ -27,9 +27,13 @@ after waiting for the load to drop when it was above 0.5 (:mod:`benchmarks._harn
 Ratios ``native/JAX`` and ``native/NumPy`` are throughput ratios (time of the other path
 divided by the native time) of the same run.
 
-Run with ``PYTHONPATH=. python benchmarks/raytrace.py [--quick] [--out PATH]
+Run with ``python benchmarks/raytrace.py [--quick] [--out PATH]
 [--wait-budget S]``. Results go to ``benchmarks/results/raytrace.json`` and a Markdown table
 is printed.
+
+Length (~800 lines): one benchmark with four implementations (native at 1 and 2 threads,
+pure JAX, NumPy) timed in the same run, the strict float64 subprocess check and the
+memory probe; every part is specific to this hot path.
 """
 
 from __future__ import annotations
@@ -38,15 +42,11 @@ import argparse
 import json
 import os
 import resource
-import statistics
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
-
-if __package__ in (None, ""):  # run as a script: make `benchmarks` and `lidarjax` importable
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import jax
 
@@ -59,15 +59,17 @@ import numpy as np
 from _harness import (
     LoadPolicy,
     add_policy_args,
+    machine_info,
+    max_abs_diff,
     native_info,
     policy_from_args,
     ratio,
     time_calls,
     warm,
+    write_json,
 )
-from _machine import machine_info
+from _numpy_reference import accumulate_numpy
 
-from benchmarks._numpy_reference import accumulate_numpy
 from lidarjax import rays as lr
 from lidarjax.datasets import fetch, load_carmen
 from lidarjax.raytrace import GridSpec, accumulate
@@ -185,11 +187,13 @@ def _native_vs_jax(native, jax_stats) -> dict:
     hn, mn = np.asarray(native.hits, np.int64), np.asarray(native.misses, np.int64)
     hj, mj = np.asarray(jax_stats.hits, np.int64), np.asarray(jax_stats.misses, np.int64)
     ln, lj = np.asarray(native.lengths, np.float64), np.asarray(jax_stats.lengths, np.float64)
+    lengths = max_abs_diff(ln, lj)
     return {
         "hit_count_mismatch": int(np.abs(hn - hj).sum()),
         "miss_count_mismatch": int(np.abs(mn - mj).sum()),
-        "max_abs_length_diff": float(np.abs(ln - lj).max()),
+        "max_abs_length_diff": lengths["max_abs_diff"],
         "total_rel_length_diff": float(np.abs(ln - lj).sum() / max(np.abs(lj).sum(), 1e-300)),
+        "lengths": lengths,
     }
 
 
@@ -257,28 +261,19 @@ def _run_case(
         native_calls[t] = call
         del nstats
 
-    def np_block():
-        times = []
-        while len(times) < np_repeats and sum(times) < np_budget_s:
-            t0 = time.perf_counter()
-            _run_numpy(spec, inputs)
-            times.append(time.perf_counter() - t0)
-        return {
-            "times_s": times,
-            "median_s": statistics.median(times),
-            "best_s": min(times),
-        }
+    def np_block():  # at most np_repeats calls, stopping once np_budget_s is used up
+        return time_calls(
+            lambda: _run_numpy(spec, inputs), np_repeats, warmup=0, budget_s=np_budget_s
+        )
 
     np_t = _rates(policy.measure(f"{name} numpy", np_block), n, visits)
     np_t["first_call_s"] = np_first
-    jax_t = _rates(policy.measure(f"{name} jax", lambda: time_calls(jax_call, repeats)), n, visits)
+    jax_t = _rates(policy.time_calls(f"{name} jax", jax_call, repeats, warmup=0), n, visits)
     jax_t["first_call_s"] = first
     jax_t["compile_s_est"] = max(first - jax_t["median_s"], 0.0)
     for t, call in native_calls.items():
         key = f"{t}t"
-        timed = policy.measure(
-            f"{name} native {t}t", lambda call=call: time_calls(call, max(repeats, 7))
-        )
+        timed = policy.time_calls(f"{name} native {t}t", call, max(repeats, 7), warmup=0)
         native[key].update(_rates(timed, n, visits))
         native[key]["native_over_jax"] = ratio(jax_t["median_s"], timed["median_s"])
         native[key]["native_over_numpy"] = ratio(np_t["median_s"], timed["median_s"])
@@ -598,10 +593,6 @@ def _subprocess(
 # --------------------------------------------------------------------------- report
 
 
-def _machine() -> dict:
-    return machine_info(dtype=str(_float_dtype()), native=native_info())
-
-
 def _fmt_rate(x: float) -> str:
     return f"{x / 1e6:.2f} M" if x >= 1e6 else f"{x / 1e3:.0f} k"
 
@@ -725,7 +716,7 @@ def main(argv: list[str] | None = None) -> None:
     t_start = time.perf_counter()
     quick = args.quick
     repeats = 5
-    results: dict = {"machine": _machine(), "quick": quick}
+    results: dict = {"machine": machine_info(native=native_info()), "quick": quick}
     if not results["machine"]["native"]["available"]:
         print(
             f"WARNING: native kernels unavailable: "
@@ -803,8 +794,7 @@ def main(argv: list[str] | None = None) -> None:
     results["peak_rss_mb_main"] = _peak_rss_mb()
     results["wall_time_s"] = time.perf_counter() - t_start
 
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(results, indent=2) + "\n")
+    write_json(args.out, results)
     print(markdown(results))
     print(f"\n(wall time {results['wall_time_s']:.0f} s; JSON: {args.out})")
 

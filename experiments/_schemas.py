@@ -19,6 +19,10 @@ source of the defaults, so composing with a schema gives exactly the values (and
 YAML gives. ``Any`` / ``Dict[str, Any]`` fields are used only where a value is free-form in
 shape (``"auto"`` or a number; the remedy variants of ``mcl_remedies``; keyword-argument
 grids of the plane baselines); :func:`validate` checks those entries in Python.
+
+Length (~1200 lines): every experiment's structured config, one dataclass section per
+experiment, next to the shared checks they compose; Hydra registers them all at once
+(``register``) and ``validate`` walks any of them.
 """
 
 from __future__ import annotations

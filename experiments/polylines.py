@@ -32,6 +32,10 @@ Writes ``results.json``, ``results.md``, ``fig10_4a.png`` (real), ``fig10_4b.png
 E.g. ``python experiments/polylines.py logs=[intel] scans=random scans_per_log=5 J=[10,20]``,
 or on a log of one's own (``scan_indices`` names it by its file name without suffixes):
 ``python experiments/polylines.py 'logs=[/data/my.log.gz]' '+scan_indices={my: [0, 10]}'``.
+
+Length (~700 lines): one experiment with its three parts (CARMEN logs on the paper's
+scans, simulated polygons, the Figure 10.3 example), its per-log table against the paper
+and its figures; splitting it would scatter one Hydra entry point over several files.
 """
 
 from __future__ import annotations

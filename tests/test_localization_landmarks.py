@@ -19,11 +19,11 @@ from lidarjax.localization import (
     merge_poles,
     overlap_clusters,
     pad_poles,
-    pole_log_likelihood_reference,
     segment_scans,
     sliding_window_filter,
     to_vector,
 )
+from lidarjax.localization._landmarks import pole_log_likelihood_reference
 
 
 def brute_clusters(xy, w):

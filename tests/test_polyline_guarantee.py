@@ -287,7 +287,7 @@ def _union_find_labels(succ: np.ndarray, real: np.ndarray) -> np.ndarray:
 def test_polyline_component_labels_match_union_find(seed):
     """``_component_labels`` (pointer doubling) labels every vertex with the smallest slot
     of its polyline: open chains, cycles and single vertices in random slot order."""
-    from lidarjax.features._polyline import _component_labels
+    from lidarjax.features._polyline_plus import _component_labels
 
     rng = np.random.default_rng(seed)
     n = int(rng.integers(8, 80))

@@ -10,6 +10,9 @@ fastest). Every field is returned as an array of shape ``[height, width]`` (or
 ``SIZE``/``TYPE`` entries.
 
 NumPy only; nothing here is called inside ``jit``.
+
+Length (~900 lines): one file format, read and written in its three encodings with the
+LZF codec, each path validating every header field so that a corrupted file is an error.
 """
 
 from __future__ import annotations

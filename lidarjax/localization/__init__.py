@@ -1,25 +1,7 @@
 """Particle-filter localization (dissertation sections 7.6.1, 8.5.2 and 12.4.3) and
 gradient-based pose refinement, pole-landmark mapping and localization (ch. 12)."""
 
-from ._filter import (
-    RESAMPLERS,
-    OdometryMotionModel,
-    ParticleFilter,
-    ParticleState,
-    StepInfo,
-    count_occupied_bins,
-    effective_sample_size,
-    estimate,
-    global_injector,
-    init_gaussian,
-    init_global,
-    init_uniform_disc,
-    kld_particle_count,
-    multinomial_resample,
-    normalize_log_weights,
-    stratified_resample,
-    systematic_resample,
-)
+from ._filter import ParticleFilter, StepInfo
 from ._global import PoseLattice, init_from_scan, lattice_scores, pose_lattice
 from ._guided import GradientGuidedMotion, SmoothScanSurrogate, smooth_scan_surrogate
 from ._landmarks import (
@@ -31,11 +13,29 @@ from ._landmarks import (
     merge_poles,
     overlap_clusters,
     pad_poles,
-    pole_log_likelihood_reference,
     segment_scans,
     sliding_window_filter,
 )
+from ._motion import OdometryMotionModel
+from ._particles import (
+    ParticleState,
+    estimate,
+    global_injector,
+    init_gaussian,
+    init_global,
+    init_uniform_disc,
+)
 from ._poses import circular_mean, from_vector, relative_motion, take, to_vector, weighted_mean
+from ._resampling import (
+    RESAMPLERS,
+    count_occupied_bins,
+    effective_sample_size,
+    kld_particle_count,
+    multinomial_resample,
+    normalize_log_weights,
+    stratified_resample,
+    systematic_resample,
+)
 from ._scan import CoarseToFineScanModel, ScanModel, coarse_to_fine_scan_model
 from .refine import (
     DCTScan,
@@ -74,7 +74,6 @@ __all__ = [
     "PoleLookup",
     "build_pole_lookup",
     "PoleMeasurementModel",
-    "pole_log_likelihood_reference",
     "pad_poles",
     "segment_scans",
     "RESAMPLERS",

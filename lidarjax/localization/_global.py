@@ -36,8 +36,9 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int, PRNGKeyArray
 
 from ..raytrace import GridSpec
-from ._filter import ParticleState, _check_n, normalize_log_weights
+from ._particles import ParticleState, _check_n
 from ._poses import from_vector
+from ._resampling import normalize_log_weights
 
 __all__ = ["PoseLattice", "pose_lattice", "init_from_scan", "lattice_scores"]
 

@@ -24,7 +24,7 @@ from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 
 from .._math import symmetric_eigh_small
 from ..maps import DecayRateMap
-from ._filter import OdometryMotionModel
+from ._motion import OdometryMotionModel
 from ._poses import Pose, dof, from_vector
 from .refine import FieldScan, SmoothDecayRateField, SmoothDecayRateScan
 

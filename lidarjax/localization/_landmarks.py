@@ -45,7 +45,6 @@ __all__ = [
     "PoleLookup",
     "build_pole_lookup",
     "PoleMeasurementModel",
-    "pole_log_likelihood_reference",
     "pad_poles",
     "segment_scans",
 ]

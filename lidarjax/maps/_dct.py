@@ -26,6 +26,10 @@ Three ways to compute ``S`` for a ray, all exact (they agree to ~1e-12 in float6
   (:func:`quadrature_nodes`), so the error is at machine precision.
 - ``method="auto"`` (default): spectral for small maps, quadrature for large ones
   (:data:`AUTO_SPECTRAL_MAX_PARAMETERS`).
+
+Length (~700 lines): the DCT map type, its spectrum, the closed-form optical depth and
+its derivatives (Eqs. 9.5, 9.9-9.12) and the quadrature path belong to one map type and
+share private helpers; the fit lives in ``_fit.py``.
 """
 
 from __future__ import annotations

@@ -20,6 +20,10 @@ Conventions: a grid covers ``[origin, origin + shape * resolution)`` per axis; c
 ``(i, j[, k])`` covers ``origin + [i, i+1) * resolution`` etc. A point exactly on a
 boundary belongs to the cell the ray *enters* there. Rays starting or ending outside the
 grid are clipped to it.
+
+Length (~1000 lines): DESIGN.md puts the grid geometry in one module: GridSpec and
+GridStats, the exact single-ray walk, ``accumulate`` and the folds share the boundary
+rule and its tolerances, which must not drift apart between copies.
 """
 
 from __future__ import annotations

@@ -47,10 +47,9 @@ from ..rays import HIT, SUB, RayBatch, is_concrete
 from ..raytrace import GridSpec
 from ._field import (
     AbstractDecayRateField,
-    clip_to_box,
+    box_segment,
     combine_log_likelihood,
     map_chunks,
-    trace_length,
 )
 from ._grid import DecayRateMap
 
@@ -387,7 +386,7 @@ def _depth_quadrature(coeffs, st, vt, length, nodes, weights):
 
 def _segment(m: DCTMap, origin, direction, length):
     """Normalised start point, normalised direction and length of the in-box part."""
-    t0, t1 = clip_to_box(m.lower, m.upper, origin, direction, length)
+    t0, t1 = box_segment(m.lower, m.upper, origin, direction, length)
     st = m.normalized(origin + t0 * direction)
     vt = jnp.pi * direction / m.extent
     return st, vt, t1 - t0
@@ -504,7 +503,7 @@ def log_likelihood(
     """
     _check(map, rays, method, chunk_size)
     flat = rays.flatten()
-    length = trace_length(flat)
+    length = flat.model_lengths()
     depth = optical_depth(
         map,
         flat.origins,
@@ -522,8 +521,8 @@ def rays_in_box(map: DCTMap, rays: RayBatch) -> Array:
     """``[*batch]`` bool: rays whose evidence lies in the map box — HIT rays ending inside
     it, SUB rays whose first ``r_min`` metres reach it and SUP rays that cross it."""
     flat = rays.flatten()
-    length = trace_length(flat)
-    t0, t1 = jax.vmap(lambda o, d, r: clip_to_box(map.lower, map.upper, o, d, r))(
+    length = flat.model_lengths()
+    t0, t1 = jax.vmap(lambda o, d, r: box_segment(map.lower, map.upper, o, d, r))(
         flat.origins, flat.directions, jnp.minimum(length, 1e30)
     )
     end_in = map.contains(flat.origins + flat.ranges[:, None] * flat.directions)
@@ -600,7 +599,7 @@ def closed_form_derivatives(
         raise ValueError(f"sub_hessian must be 'corrected' or 'paper', got {sub_hessian!r}")
     _check(map, rays, "paper", 1)
     flat = rays.flatten()
-    length = trace_length(flat)
+    length = flat.model_lengths()
     sign = 1.0 if sub_hessian == "paper" else -1.0
 
     def one(o, d, r, ell, kind):
@@ -716,5 +715,4 @@ __all__ = [
     "ray_weights",
     "rays_in_box",
     "to_grid",
-    "trace_length",
 ]

@@ -51,12 +51,11 @@ from ..raytrace import map_chunked, ray_box
 __all__ = [
     "AbstractDecayRateField",
     "AbstractQuadratureField",
-    "clip_to_box",
+    "box_segment",
     "combine_log_likelihood",
     "field_log_likelihood",
     "fit",
     "map_chunks",
-    "trace_length",
 ]
 
 
@@ -114,7 +113,7 @@ class AbstractDecayRateField(eqx.Module):
 # geometry and chunking helpers
 
 
-def clip_to_box(lower, upper, origin, direction, length):
+def box_segment(lower, upper, origin, direction, length):
     """Entry and exit distances ``0 <= t0 <= t1 <= length`` of one ray's part inside the
     box ``[lower, upper]`` (``t0 = t1 = 0`` when it misses the box); NaN-free for
     axis-parallel rays and infinite lengths. The slab test is
@@ -144,14 +143,6 @@ def map_chunks(fn: Callable, args: tuple, chunk_size: int, *, checkpoint: bool =
 
 # --------------------------------------------------------------------------------------
 # the generic forward model
-
-
-def trace_length(rays: RayBatch) -> Float[Array, "*batch"]:
-    """Range up to which each ray's optical depth is needed: ``r`` (HIT), ``r_min`` (SUB,
-    Eq. 9.11), ``r_max`` (SUP, Eq. 9.12)."""
-    return jnp.where(
-        rays.kind == HIT, rays.ranges, jnp.where(rays.kind == SUB, rays.r_min, rays.r_max)
-    )
 
 
 def combine_log_likelihood(kind, rate_at_end, depth, rate_floor=0.0):
@@ -221,7 +212,7 @@ def field_log_likelihood(
     flat = rays.flatten()
     if flat.ranges.shape[0] == 0:
         return jnp.zeros(rays.shape, flat.origins.dtype)
-    length = trace_length(flat)
+    length = flat.model_lengths()
     r_end = jnp.where(flat.kind == HIT, flat.ranges, 0.0)  # no inf end points (SUP)
 
     def chunk(o, d, ell, r, k):
@@ -294,7 +285,7 @@ class AbstractQuadratureField(AbstractDecayRateField):
         dtype = jnp.result_type(origins.dtype, self.lower.dtype)
         x, w = jnp.asarray(x, dtype), jnp.asarray(w, dtype)
         upper = self.lower + self.extent
-        t0, t1 = jax.vmap(lambda o, d, r: clip_to_box(self.lower, upper, o, d, r))(
+        t0, t1 = jax.vmap(lambda o, d, r: box_segment(self.lower, upper, o, d, r))(
             origins, directions, lengths
         )
         half = 0.5 * (t1 - t0)

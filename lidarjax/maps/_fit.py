@@ -42,7 +42,6 @@ from ._dct import (
     quadrature_nodes,
     ray_weights,
     rays_in_box,
-    trace_length,
 )
 from ._grid import decay_rate_map
 
@@ -172,7 +171,7 @@ def dct_objective(
                 "box (HIT end point outside it, or the ray misses it); select rays with "
                 "lidarjax.maps.rays_in_box"
             )
-    length = trace_length(flat)
+    length = flat.model_lengths()
     kind = np.asarray(flat.kind)
     use = jnp.asarray((kind == HIT) | (kind == SUP))
     w_free = _weights(

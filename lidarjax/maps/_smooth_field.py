@@ -21,7 +21,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from .._math import mul0
-from ._field import AbstractDecayRateField, clip_to_box
+from ._field import AbstractDecayRateField, box_segment
 from ._grid import DecayRateMap
 from ._smoothing import blur
 
@@ -155,7 +155,7 @@ class SmoothDecayRateField(AbstractDecayRateField):
     ) -> Float[Array, " n"]:
         """Optical depth ``S = int_0^r lambda(s + t v) dt`` per ray: the midpoint rule with
         :attr:`n_nodes` nodes over the chord ``[t0, t1]`` inside the grid box (slab test
-        :func:`~lidarjax.maps._field.clip_to_box`) plus ``outside_rate * (r - (t1 - t0))``
+        :func:`~lidarjax.maps._field.box_segment`) plus ``outside_rate * (r - (t1 - t0))``
         (``0 * inf := 0``). Differentiable in the rays and the rates.
 
         Args:
@@ -167,7 +167,7 @@ class SmoothDecayRateField(AbstractDecayRateField):
             ``[n]`` optical depths (dimensionless).
         """
         spec = self.grid.spec
-        t0, t1 = jax.vmap(lambda o, d, r: clip_to_box(spec.origin, spec.upper, o, d, r))(
+        t0, t1 = jax.vmap(lambda o, d, r: box_segment(spec.origin, spec.upper, o, d, r))(
             origins, directions, lengths
         )
         chord = t1 - t0

@@ -32,14 +32,16 @@ demo: install
 # Compiled programs are cached between runs in ~/.cache/lidarjax (tests/conftest.py;
 # LIDARJAX_JAX_CACHE=off disables it).
 TEST_WORKERS ?= $(shell $(PYTHON) -c "import os; print(max(1, min(4, len(os.sched_getaffinity(0)) if hasattr(os, 'sched_getaffinity') else (os.cpu_count() or 1))))")
-PYTEST := $(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile --durations=20
+# Fast tests go by file (module fixtures built once); the slow ones, a few minutes each and
+# many in one file, are handed out one by one to whichever worker is free.
+PYTEST := $(PY) -m pytest -q -n $(TEST_WORKERS) --durations=20
 
 test: install
 	$(VENV)/bin/ruff check .
-	$(PYTEST) -m "not slow"
+	$(PYTEST) --dist loadfile -m "not slow"
 
 test-slow: install
-	$(PYTEST) -m slow
+	$(PYTEST) --dist worksteal -m slow
 
 test-all: test test-slow
 

@@ -54,7 +54,8 @@ def test_readme_examples_run():
     # planes (PPE)
     seg, hv, fit = ns["seg"], ns["hv"], ns["fit"]
     assert seg.labels.shape == (100, 100) and seg.normals.shape == (seg.n_planes, 3)
-    assert hv.n_gt == 13 and hv.n_correct >= 5
+    # the README scores SynPEB-file planes only (labels >= 10): 12 on the crop, 10 found
+    assert hv.n_gt == 12 and hv.n_correct >= 10
     assert bool(fit.converged)
     np.testing.assert_allclose(float(fit.error), float(seg.errors[0]), rtol=1e-6)
     assert 0.0005 < ns["sigma"] < 0.005

@@ -4,7 +4,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed-stamp
 
-.PHONY: demo test test-slow test-all bench lint install native clean
+.PHONY: notebooks demo test test-slow test-all bench lint install native clean docs
 
 $(PY):
 	$(PYTHON) -m venv $(VENV)
@@ -51,6 +51,25 @@ bench: install
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check lidarjax tests experiments benchmarks
+
+# The documentation site (mkdocs.yml, docs/: guide, results, API reference from the
+# docstrings) -> site/. --strict turns every warning (a broken link or anchor, an unresolved
+# cross-reference, a docstring griffe cannot read) into a failure. The docs extra is
+# installed once per pyproject.toml change, like the dev extra.
+DOCS_STAMP := $(VENV)/.docs-stamp
+
+$(DOCS_STAMP): pyproject.toml | $(STAMP)
+	$(PY) -m pip install --quiet -e '.[docs]'
+	touch $(DOCS_STAMP)
+
+# The notebooks' .py files (Jupytext percent scripts) are the source; this writes the
+# paired .ipynb (no outputs; edit the .py, not the .ipynb) (tests/test_notebooks.py checks they are in sync and runs
+# them in a Jupyter kernel).
+notebooks: $(STAMP)
+	$(VENV)/bin/jupytext --quiet --to ipynb notebooks/*.py
+
+docs: $(DOCS_STAMP)
+	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict -d site
 
 clean:
 	rm -rf $(VENV) outputs multirun .pytest_cache

@@ -304,6 +304,39 @@ class DemoScans:
 
 
 @dataclass
+class DemoEndpoint:
+    sigma_m: float = _f(positive)
+    z_hit: float = _f(probability)
+    z_rand: float = _f(probability)
+
+
+@dataclass
+class DemoLocalization:
+    n_poses: int = _f(ge(2))  # poses of the held-out trajectory (n_poses - 1 filter steps)
+    n_beams: int = _f(count)  # beams per scan in the filter (evenly spaced)
+    particles: int = _f(count)
+    init_offset: list[float] = _f(length(3), each=finite)  # m, m, rad: the wrong start
+    init_std: list[float] = _f(length(3), each=nonnegative)  # m, m, rad
+    odometry_noise: list[float] = _f(length(3), each=nonnegative)  # m, m, rad per step
+    motion_sigma: list[float] = _f(length(3), each=nonnegative)  # m, m, rad per step
+    motion_alpha: list[list[float]] = _f(length(3), each=nonnegative)  # [3 3]
+    ray_floor: float = _f(finite)  # nats
+
+
+@dataclass
+class DemoDct:
+    cell_m: float = _f(positive)  # box edge per coefficient (m)
+    n_rays: int = _f(count)
+    max_steps: int = _f(count)
+
+
+@dataclass
+class DemoPolylines:
+    scan: int = _f(nonnegative)  # index into the held-out scans
+    max_vertices: int = _f(ge(2))
+
+
+@dataclass
 class DemoConfig:
     """``configs/demo.yaml``."""
 
@@ -311,12 +344,25 @@ class DemoConfig:
     world: DemoWorld = _node(DemoWorld)
     scans: DemoScans = _node(DemoScans)
     grid: Grid = _node(Grid)
+    endpoint: DemoEndpoint = _node(DemoEndpoint)
+    localization: DemoLocalization = _node(DemoLocalization)
+    dct: DemoDct = _node(DemoDct)
+    polylines: DemoPolylines = _node(DemoPolylines)
     chunk_size: int = _f(count)
 
     @staticmethod
     def check(cfg, problems) -> None:
         if cfg.scans.r_min_m >= cfg.scans.max_range_m:
             problems.append(("scans.r_min_m", cfg.scans.r_min_m, "must be < scans.max_range_m"))
+        if cfg.scans.n_poses == 1:  # 0 is out of range already
+            problems.append(("scans.n_poses", 1, "must be >= 2 (a trajectory)"))
+        n_beams, loc = cfg.scans.n_beams, cfg.localization
+        if n_beams >= 1 and loc.n_beams > n_beams:
+            why = f"must be <= scans.n_beams ({n_beams})"
+            problems.append(("localization.n_beams", loc.n_beams, why))
+        if loc.n_poses >= 2 and cfg.polylines.scan >= loc.n_poses:
+            why = f"must be < localization.n_poses ({loc.n_poses})"
+            problems.append(("polylines.scan", cfg.polylines.scan, why))
 
 
 # --------------------------------------------------------------------------------------

@@ -56,6 +56,7 @@ from tqdm import tqdm  # noqa: E402
 from lidarjax import localization as loc  # noqa: E402
 from lidarjax.datasets import fetch, load_carmen  # noqa: E402
 from lidarjax.localization.refine import refine_scan_pose, smooth_fields  # noqa: E402
+from lidarjax.plot import plot_map, plot_trajectory  # noqa: E402
 from lidarjax.raytrace import GridSpec  # noqa: E402
 
 NAMES = {  # the GRID_MODELS and their table labels
@@ -254,7 +255,7 @@ def evaluate_log(name: str, cfg: DictConfig, failures: bool = False) -> dict:
             out["refine"] = refine_eval(models["dec"], log, seq, r["est"], cfg, r_min, r_max)
     out["models"] = per_model
     out["seconds"] = time.perf_counter() - t_start
-    return out, curves, seq["gt"]
+    return out, curves, {"truth": seq["gt"], "map": models["dec"]}  # the figure's background
 
 
 def write_tables(results: dict, models: list[str]) -> str:
@@ -331,6 +332,9 @@ def error_grid(series: dict, path: Path, ylabel: str, legend_size: int = 7) -> N
 
 
 def plot(curves: dict, gts: dict, out: Path) -> None:
+    """``errors.png`` and ``trajectories.png``: per log, the corrected and the estimated
+    trajectories (run 0 of each model) over the log's decay-rate map, zoomed to the
+    trajectories (x, y in m; colour bar: decay rate; unobserved cells grey)."""
     names = list(curves)
     cols = min(4, len(names))
     rows = -(-len(names) // cols)
@@ -340,18 +344,25 @@ def plot(curves: dict, gts: dict, out: Path) -> None:
         "position error [m]",
         legend_size=7,
     )
-    fig, axes = plt.subplots(rows, cols, figsize=(4 * cols, 4 * rows), squeeze=False)
+    fig, axes = plt.subplots(
+        rows, cols, figsize=(5.2 * cols, 4.6 * rows), squeeze=False, layout="constrained"
+    )
     for ax, name in zip(axes.flat, names):
-        gt = gts[name]
-        ax.plot(gt[:, 0], gt[:, 1], "k-", lw=2, label="corrected poses")
+        gt = gts[name]["truth"]
+        plot_map(gts[name]["map"], ax=ax, title=name)
+        plot_trajectory(gt, ax=ax, color="k", lw=2, label="corrected poses")
+        tracks = [gt[:, :2]]
         for m, c in curves[name].items():
-            ax.plot(c["est"][:, 0], c["est"][:, 1], lw=1, label=f"{NAMES[m]} (run 0)")
-        ax.set_aspect("equal")
-        ax.set_title(name)
+            plot_trajectory(c["est"], ax=ax, lw=1, label=f"{NAMES[m]} (run 0)")
+            tracks.append(c["est"][:, :2])
+        pts = np.concatenate(tracks)
+        lo, hi = pts.min(0), pts.max(0)
+        pad = 0.15 * max(hi - lo) + 2.0  # the trajectories and some of the map around them
+        ax.set_xlim(lo[0] - pad, hi[0] + pad)
+        ax.set_ylim(lo[1] - pad, hi[1] + pad)
+        ax.legend(loc="best", fontsize=6, framealpha=0.8)
     for ax in list(axes.flat)[len(names) :]:
         ax.axis("off")
-    axes.flat[0].legend(fontsize=6)
-    fig.tight_layout()
     fig.savefig(out / "trajectories.png", dpi=120)
     plt.close(fig)
 

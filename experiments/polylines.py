@@ -580,8 +580,12 @@ def tables(summary: dict) -> str:
 
 
 def plot_accuracy(acc: dict, out: Path, kind: str, noise_m: float | None) -> None:
+    """Figure 10.4: accuracy vs J per method; the legend sits outside the panels."""
     keys = ["rmse_m", "rmse_common_m", "f"] + (["a"] if kind == "simulated" else [])
-    fig, axes = plt.subplots(1, len(keys), figsize=(4.2 * len(keys), 3.4))
+    fig, axes = plt.subplots(
+        1, len(keys), figsize=(4.2 * len(keys) + 1.0, 3.6), layout="constrained", squeeze=False
+    )
+    axes = axes[0]
     Js = [int(j) for j in acc]
     methods = list(next(iter(acc.values())).keys())
     for ax, key in zip(axes, keys):
@@ -595,13 +599,19 @@ def plot_accuracy(acc: dict, out: Path, kind: str, noise_m: float | None) -> Non
         if key.startswith("rmse") and noise_m:
             ax.axhline(noise_m * 1e3, color="0.4", ls="--", lw=1)
         ax.set_xlabel("J (vertices)")
-        labels = {"rmse_m": "RMSE (mm)", "rmse_common_m": "RMSE on common rays (mm)"}
+        labels = {
+            "rmse_m": "RMSE (mm)",
+            "rmse_common_m": "RMSE on common rays (mm)",
+            "f": "explained fraction f",
+            "a": "area ratio a",
+        }
         ax.set_ylabel(labels.get(key, key))
         if key.startswith("rmse"):
             ax.set_yscale("log")
-    axes[0].legend(fontsize=8)
+        ax.grid(alpha=0.3)
+    handles, names = axes[0].get_legend_handles_labels()
+    fig.legend(handles, names, loc="outside right center", fontsize=8, title="method")
     fig.suptitle(f"Polyline extraction accuracy, {kind} scans (mean ± s.e.)", fontsize=10)
-    fig.tight_layout()
     fig.savefig(out, dpi=130)
     plt.close(fig)
 
@@ -610,20 +620,27 @@ def plot_example(ds: Dataset, i: int, J: int, cfg, out: Path) -> dict:
     """Figure 10.3: all methods on one scan."""
     res = run_all(Dataset(ds.name, ds.az, ds.ranges[i : i + 1], ds.r_max, ds.closed), J, cfg)
     methods = list(res)
-    fig, axes = plt.subplots(1, len(methods), figsize=(3.6 * len(methods), 3.8))
-    for ax, m in zip(np.atleast_1d(axes), methods):
+    pts = np.vstack([ds.endpoints[i][ds.reflected[i]], np.zeros((1, 2))])
+    lo, hi = pts.min(0) - 0.5, pts.max(0) + 0.5
+    height = float(np.clip(3.6 * (hi[1] - lo[1]) / (hi[0] - lo[0]), 1.5, 5.0)) + 1.3
+    fig, axes = plt.subplots(
+        1, len(methods), figsize=(3.6 * len(methods), height), layout="constrained", squeeze=False
+    )
+    for ax, m in zip(axes[0], methods):
         s = res[m][0]
         plot_polyline_scan(
             ax, np.zeros(2), ds.endpoints[i], ds.reflected[i],
             [np.asarray(p) for p in s["polylines"]], s["closed"],
             title=f"{m}: RMSE {s['rmse_m'] * 1e3:.1f} mm, f {s['f']:.2f}",
         )  # fmt: skip
-    pts = np.vstack([ds.endpoints[i][ds.reflected[i]], np.zeros((1, 2))])
-    lo, hi = pts.min(0) - 0.5, pts.max(0) + 0.5
-    for ax in np.atleast_1d(axes):  # same frame for all methods (SAM's vertices can fly off)
+    for ax in axes[0]:  # same frame for all methods (SAM's vertices can fly off)
         ax.set_xlim(lo[0], hi[0])
         ax.set_ylim(lo[1], hi[1])
-    fig.tight_layout()
+    fig.suptitle(
+        f"Figure 10.3: {ds.name} scan {ds.indices[i] if ds.indices is not None else i}, "
+        f"J_max = {J}, sensor frame (red: reflected rays, grey: no return)",
+        fontsize=10,
+    )
     fig.savefig(out, dpi=130)
     plt.close(fig)
     return {m: {k: res[m][0][k] for k in ("J", "rmse_m", "f")} for m in methods}

@@ -22,15 +22,43 @@ def run_experiment(name: str, out: Path, *overrides: str) -> dict:
 
 @pytest.mark.slow  # > 5 s: runs in make test-slow / CI
 def test_demo_small(tmp_path):
+    """The headline demo on tiny settings: maps, three particle filters, a DCT map and
+    PLE / PLE+ polylines, one figure and one table."""
     res = run_experiment(
-        "demo", tmp_path, "scans.n_poses=30", "scans.n_beams=91", "grid.resolution_m=0.1"
+        "demo",
+        tmp_path,
+        "scans.n_poses=30",
+        "scans.n_beams=91",
+        "grid.resolution_m=0.1",
+        "localization.n_poses=12",
+        "localization.n_beams=15",
+        "localization.particles=50",
+        "dct.cell_m=2.0",
+        "dct.n_rays=800",
+        "dct.max_steps=30",
+        "polylines.scan=3",
+        "polylines.max_vertices=8",
     )
     assert res["n_rays"] == 30 * 91
     assert sum(res["rays_by_kind"].values()) == res["n_rays"]
     assert res["hits_total"] == res["rays_by_kind"]["HIT"]  # all endpoints inside the grid
     assert res["hits_near_true_walls_fraction"] > 0.99
     assert res["grid_shape"] == [210, 130]
-    for f in ("grid_stats.png", "results.md", "results.json"):
+    assert res["n_localized_scans"] == 11
+    assert set(res["localization"]) == {"dec", "ref", "end"}
+    for r in res["localization"].values():
+        for k in ("final_pos_err_m", "mean_pos_err_m", "mean_head_err_deg", "seconds"):
+            assert np.isfinite(r[k]) and r[k] >= 0, (k, r[k])
+        assert len(r["pos_err_m_per_step"]) == 11
+    assert res["dct"]["shape"] == [11, 7] and 0 < res["dct"]["p_ref_rmse"] < 1
+    assert res["polylines"]["PLE"]["J"] <= 8 and res["polylines"]["PLE+"]["J"] <= 8
+    assert res["polylines"]["PLE+"]["rmse_m"] <= res["polylines"]["PLE"]["rmse_m"] < 0.5
+    table = (tmp_path / "results.md").read_text()
+    for name in ("decay rate", "reflection", "endpoint"):
+        row = next(ln for ln in table.splitlines() if ln.startswith(f"| {name} |"))
+        cells = [c.strip() for c in row.strip("|").split("|")[1:]]
+        assert len(cells) == 5 and all(np.isfinite(float(c)) for c in cells), row
+    for f in ("demo.png", "results.md", "results.json"):
         assert (tmp_path / f).stat().st_size > 0
 
 

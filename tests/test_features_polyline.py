@@ -7,7 +7,6 @@ import jax.numpy as jnp
 import jaxlie
 import numpy as np
 import pytest
-from helpers import finite_difference
 
 from lidarjax import rays as R
 from lidarjax.features import (
@@ -20,6 +19,7 @@ from lidarjax.features import (
 )
 from lidarjax.raytrace import first_segment_hit, ray_segment
 from lidarjax.sim import random_polygon, simulate_polygon_scan
+from lidarjax.testing import finite_difference
 
 D_RM = 0.5
 
@@ -188,7 +188,7 @@ def test_ray_segment_gradients():
 
     jf, jr = jax.jacfwd(f)(x), jax.jacrev(f)(x)
     np.testing.assert_allclose(jf, jr, rtol=1e-12)
-    np.testing.assert_allclose(jr, finite_difference(jax.jit(f), x), rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(jr, finite_difference(jax.jit(f), x, eps=1e-6), rtol=1e-6, atol=1e-9)
 
 
 # ---------------------------------------------------------------- polyline map

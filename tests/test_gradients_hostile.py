@@ -17,7 +17,6 @@ import jax.numpy as jnp
 import jaxlie
 import numpy as np
 import pytest
-from helpers import finite_difference
 from test_localization import _small_world
 
 from lidarjax.maps import (
@@ -42,6 +41,7 @@ from lidarjax.sensor_models import (
     reflection_log_likelihood,
 )
 from lidarjax.sim import OfficeWorld, simulate_scans
+from lidarjax.testing import finite_difference
 
 R_MIN, R_MAX = 0.15, 3.5
 # cell edges at -0.5 + 0.25 k; the room is [0, 4] x [0, 3], the grid reaches x = 5.5, so

@@ -10,7 +10,6 @@ import jax.numpy as jnp
 import jaxlie
 import numpy as np
 import pytest
-from helpers import finite_difference
 from jaxtyping import Array, Float
 
 from lidarjax import localization as loc
@@ -25,6 +24,7 @@ from lidarjax.sensor_models import (
     grid_log_likelihood,
     ray_log_likelihoods_at_poses,
 )
+from lidarjax.testing import finite_difference
 
 
 class Transmittance(AbstractGridModel):

@@ -14,7 +14,6 @@ import jax.numpy as jnp
 import jaxlie
 import numpy as np
 import pytest
-from helpers import tree_allclose
 
 from lidarjax.localization import (
     OdometryMotionModel,
@@ -45,6 +44,7 @@ from lidarjax.sensor_models import (
     reflection_log_likelihood,
 )
 from lidarjax.sim import OfficeWorld, simulate_scans
+from lidarjax.testing import tree_allclose
 
 Z = 6.0  # standard errors allowed in statistical checks
 

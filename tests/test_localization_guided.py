@@ -14,7 +14,6 @@ import jax.numpy as jnp
 import jaxlie
 import numpy as np
 import pytest
-from helpers import finite_difference
 from scipy import stats
 from test_localization import GaussianPosition
 
@@ -33,6 +32,7 @@ from lidarjax.localization._guided import (
 )
 from lidarjax.localization.refine import SmoothDecayRateField, SmoothDecayRateScan
 from lidarjax.raytrace import GridSpec
+from lidarjax.testing import finite_difference
 
 Z = 4.0  # standard errors allowed in statistical checks
 
@@ -294,7 +294,7 @@ def test_shift_is_sigma_times_finite_difference_gradient(step_scale, autodiff):
     for i in range(len(anc_v)):
         p = jax.tree.map(lambda t, i=i: t[i : i + 1], anc)
         fd = finite_difference(
-            lambda e, p=p: sur(p @ from_vector(e[None] + CHI), None)[0], [0.0] * 3
+            lambda e, p=p: sur(p @ from_vector(e[None] + CHI), None)[0], np.zeros(3)
         )
         np.testing.assert_allclose(d[i], step_scale * std**2 * fd, rtol=1e-6, atol=1e-10)
     assert np.all(np.abs(d) > 1e-4)  # every component really shifted
@@ -511,7 +511,7 @@ def test_smooth_scan_surrogate_gradient_drives_the_shift():
     value = jax.jit(lambda e, p: sur(p @ from_vector(e[None]), ranges)[0])
     for i in range(4):
         p = jax.tree.map(lambda t, i=i: t[i : i + 1], anc)
-        fd = finite_difference(lambda e, p=p: value(e, p), [0.0] * 3)
+        fd = finite_difference(lambda e, p=p: value(e, p), np.zeros(3))
         np.testing.assert_allclose(d[i], std**2 * fd, rtol=1e-5, atol=1e-12)
     new, corr = eqx.filter_jit(lambda mo: mo.propose(anc, chi, ranges, key=jax.random.key(1)))(
         motion

@@ -10,7 +10,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import finite_difference
 from scipy.integrate import simpson
 
 from lidarjax.maps import (
@@ -28,6 +27,7 @@ from lidarjax.maps import (
 )
 from lidarjax.rays import HIT, SUB, SUP, RayBatch
 from lidarjax.raytrace import GridSpec
+from lidarjax.testing import finite_difference
 
 METHODS = ("paper", "spectral", "quadrature")
 
@@ -430,7 +430,8 @@ def test_closed_form_derivatives_match_autodiff(deriv_setup, spectral_hessian, m
         np.testing.assert_allclose(res[4], h_ad, rtol=1e-10, atol=1e-12)
         value = lambda x: autodiff(x)[0]
         grad = lambda x: autodiff(x)[1]
-        np.testing.assert_allclose(finite_difference(value, a), g_ad, rtol=1e-6, atol=1e-7)
+        fd_g = finite_difference(value, a, eps=1e-6)
+        np.testing.assert_allclose(fd_g, g_ad, rtol=1e-6, atol=1e-7)
         fd_h = finite_difference(grad, a, eps=1e-5)
         np.testing.assert_allclose(fd_h, h_ad, rtol=1e-6, atol=1e-6)
 

@@ -13,7 +13,6 @@ import jaxlie
 import numpy as np
 import optimistix as optx
 import pytest
-from helpers import finite_difference
 from scipy.special import erf
 
 from lidarjax import maps
@@ -21,6 +20,7 @@ from lidarjax.localization.refine import FieldScan, refine_pose, refine_scan_pos
 from lidarjax.rays import HIT, SUB, SUP, RayBatch, from_scan
 from lidarjax.raytrace import GridSpec, accumulate
 from lidarjax.sensor_models import decay_rate_log_likelihood
+from lidarjax.testing import finite_difference
 
 # --------------------------------------------------------------------------------------
 # user-style fields for the tests
@@ -244,7 +244,7 @@ def test_grid_gradient_is_eq_7_19_and_hessian_is_eq_7_21():
     hess = np.asarray(jax.jit(jax.hessian(f))(rates)).reshape(36, 36)
     want = np.diag((-h / np.asarray(rates) ** 2).reshape(-1))  # Eq. 7.21, zero off-diagonal
     np.testing.assert_allclose(hess, want, rtol=1e-10, atol=1e-10)
-    np.testing.assert_allclose(g, finite_difference(f, rates), rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(g, finite_difference(f, rates, eps=1e-6), rtol=1e-6, atol=1e-6)
     assert (
         h.sum() > 50 and (h == 0).sum() >= 1 and (r > 0).all()
     )  # both kinds of cells are exercised

@@ -9,7 +9,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import finite_difference
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -30,6 +29,7 @@ from lidarjax.raytrace import (
     slabs,
     unchunk,
 )
+from lidarjax.testing import finite_difference
 
 INF = np.inf
 
@@ -112,7 +112,7 @@ def _check_jacobians(f, degenerate, generic):
         assert np.isfinite(np.asarray(jf(x))).all() and np.isfinite(np.asarray(jr(x))).all()
     x = jnp.asarray(generic, jnp.float64)
     np.testing.assert_allclose(jf(x), jr(x), rtol=1e-12)
-    np.testing.assert_allclose(jr(x), finite_difference(f, x), rtol=1e-6, atol=1e-8)
+    np.testing.assert_allclose(jr(x), finite_difference(f, x, eps=1e-6), rtol=1e-6, atol=1e-8)
 
 
 # ---------------------------------------------------------------- slab test

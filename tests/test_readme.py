@@ -1,4 +1,5 @@
-"""The README's Python examples run as written (against the shared real data)."""
+"""The Python examples of the README (its quickstart) and of the guide (docs/guide/*.md) run
+as written (against the shared real data)."""
 
 from __future__ import annotations
 
@@ -8,16 +9,60 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-README = Path(__file__).resolve().parents[1] / "README.md"
+ROOT = Path(__file__).resolve().parents[1]
+README = ROOT / "README.md"
+GUIDE = ROOT / "docs" / "guide"
+# The guide's pages in reading order: later examples continue the earlier ones (one namespace).
+GUIDE_ORDER = (
+    "data.md",
+    "ray-tracing.md",
+    "sensor-models.md",
+    "localization.md",
+    "dct-maps.md",
+    "fields.md",
+    "polylines.md",
+    "planes.md",
+    "poles.md",
+    "plots.md",
+    "notebooks.md",
+    "guarantees.md",
+    "performance.md",
+    "tests.md",
+)
+
+
+def python_blocks(path: Path) -> list[str]:
+    return re.findall(r"```python\n(.*?)```", path.read_text(), flags=re.S)
+
+
+def test_guide_order_lists_every_page():
+    """A new guide page joins GUIDE_ORDER, so its examples run too."""
+    assert sorted(GUIDE_ORDER) == sorted(p.name for p in GUIDE.glob("*.md"))
 
 
 @pytest.mark.slow
-def test_readme_examples_run():
-    blocks = re.findall(r"```python\n(.*?)```", README.read_text(), flags=re.S)
-    assert len(blocks) >= 2
+def test_readme_quickstart_runs():
+    blocks = python_blocks(README)
+    assert len(blocks) >= 1
     ns: dict = {}
-    for code in blocks:  # later blocks continue the earlier ones
+    for code in blocks:
         exec(compile(code, str(README), "exec"), ns)
+    assert ns["log"].ranges_m.shape == (910, 180)
+    assert ns["ll"].shape == (180,)
+    assert np.all(np.isfinite(np.asarray(ns["ll"])))  # the scan helped build the map
+    track, odd = np.asarray(ns["track"]), ns["odd"]
+    assert track.shape == (19, 3)
+    err = np.linalg.norm(track[:, :2] - ns["log"].poses[odd[1:], :2], axis=1)
+    assert err.mean() < 0.2, err
+
+
+@pytest.mark.slow
+def test_guide_examples_run():
+    blocks = [(GUIDE / name, code) for name in GUIDE_ORDER for code in python_blocks(GUIDE / name)]
+    assert len(blocks) >= 9
+    ns: dict = {}
+    for path, code in blocks:  # later blocks continue the earlier ones
+        exec(compile(code, str(path), "exec"), ns)
     assert ns["log"].ranges_m.shape == (910, 180)
     assert int(ns["stats"].hits.sum()) == ns["rays"].counts()["HIT"]
     assert ns["ll"].shape == (180,) and ns["ll_fmp"].shape == (180,)
@@ -54,7 +99,7 @@ def test_readme_examples_run():
     # planes (PPE)
     seg, hv, fit = ns["seg"], ns["hv"], ns["fit"]
     assert seg.labels.shape == (100, 100) and seg.normals.shape == (seg.n_planes, 3)
-    # the README scores SynPEB-file planes only (labels >= 10): 12 on the crop, 10 found
+    # the guide scores SynPEB-file planes only (labels >= 10): 12 on the crop, 10 found
     assert hv.n_gt == 12 and hv.n_correct >= 10
     assert bool(fit.converged)
     np.testing.assert_allclose(float(fit.error), float(seg.errors[0]), rtol=1e-6)

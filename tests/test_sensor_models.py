@@ -6,7 +6,6 @@ import jax.numpy as jnp
 import jaxlie
 import numpy as np
 import pytest
-from helpers import finite_difference
 
 from lidarjax.maps import DecayRateMap, EndpointMap, ReflectionMap, endpoint_map
 from lidarjax.rays import HIT, SUB, SUP, RayBatch, from_scan
@@ -18,6 +17,7 @@ from lidarjax.sensor_models import (
     ray_log_likelihoods_at_poses,
     reflection_log_likelihood,
 )
+from lidarjax.testing import finite_difference
 
 # ---------------------------------------------------------------------------------------
 # Independent NumPy reference: dense list of all grid-line crossings along the ray.

@@ -86,6 +86,30 @@ class FieldScan(eqx.Module):
     ``log(lambda(x(r)) + rate_floor) - int_0^r lambda`` for HIT readings,
     ``log(1 - exp(-int_0^r_min lambda))`` for SUB and ``-int_0^r_max lambda`` for SUP.
 
+    Smoothness in the pose: as smooth as the field's ``decay_rate`` at the HIT end points
+    and its ``integral``, plus a kink per ray where its log-likelihood meets ``ray_floor``
+    (``rate_floor`` adds none). On a :class:`~lidarjax.maps.SmoothDecayRateField` the
+    objective is continuous, and C-infinity on the open set of poses where
+
+    1. no HIT end point lies on a cell-centre line ``x = origin_x + (i + 1/2) res`` or
+       ``y = origin_y + (j + 1/2) res`` (where the bilinear interpolant's slope jumps),
+    2. no midpoint node of any ray lies on such a line (``n_nodes`` per ray, evenly over
+       the part inside the grid box of ``[0, r]``; ``r`` the range for HIT, ``r_min`` for
+       SUB, ``r_max`` for SUP),
+    3. no ray starts or ends on the grid box border or passes through a box corner,
+    4. no ray's log-likelihood equals ``ray_floor``.
+
+    On these sets the gradient jumps (right minus left derivative): for (1) by the
+    interpolant's slope jump across the line times ``|d x_end / d pose|`` over
+    ``lambda + rate_floor``; for (2) by minus ``chord / n_nodes`` times the slope jump
+    times ``|d x_node / d pose|`` (the node's share of ``-S``). Where a HIT end point
+    crosses the grid box border the value itself jumps (the end-point rate switches to
+    ``outside_rate``). Set (2) is dense: with 256 nodes, a 1e-4 finite-difference step in
+    the pose crosses lines even on a 7-beam scan, which is why ``jax.test_util.check_grads``
+    reports relative errors ~1e-3; at poses whose points keep off the lines by more than the
+    step, :func:`lidarjax.testing.check_gradients` passes at float64 tolerances, and on a
+    line the one-sided derivatives differ by the jump above (``tests/test_testing.py``).
+
     Attributes:
         field: the decay-rate field.
         azimuths: ``[b]`` beam angles (rad); ranges: ``[b]`` readings (m).

@@ -51,6 +51,26 @@ class SmoothDecayRateField(AbstractDecayRateField):
     :func:`~lidarjax.maps.fit` optimises ``sqrt`` of the (blurred) cell rates, like
     :class:`~lidarjax.maps.DecayRateMap`.
 
+    Smoothness (in the points, hence in a sensor pose). Let ``c_i = origin + (i + 1/2) res``
+    be the cell-centre coordinates (``i = 0 .. n - 1`` per axis). Inside each square
+    ``[c_i, c_i+1] x [c_j, c_j+1]`` of the cell-centre lattice, and in the half-cell border
+    strips where it is clamped, the field is a bilinear polynomial (C-infinity). On the
+    lattice lines ``x = c_i`` and ``y = c_j`` it is continuous but its gradient jumps: the
+    slope across the line changes from the left to the right pair of cells (generically
+    nonzero; exactly on a line, autodiff returns the slope on the side of the larger
+    coordinate). On the grid box border the value jumps from the clamped border value to
+    ``outside_rate``. :meth:`integral` inherits this: it is ``chord / n_nodes`` times the
+    sum of the field at the midpoint nodes, so it is continuous in the rays and smooth
+    except where a node lies on a lattice line (its derivative jumps by ``chord / n_nodes``
+    times that node's slope jump) or where the chord's ends switch (a ray starting or
+    ending on the box border, a ray through a box corner). These kink sets are dense: a
+    perturbation moving the points by ``h`` (m) crosses about ``n_nodes * h / res`` of them
+    per ray and axis, so finite-difference steps must stay below the nodes' distance to the
+    nearest line (``jax.test_util.check_grads``'s 1e-4 typically crosses some and fails
+    with relative errors ~1e-3). The scan objective's kink sets are stated in
+    :class:`~lidarjax.localization.refine.FieldScan`. (A C1 field needs a smoother
+    interpolant, e.g. quadratic B-splines, which changes the values: not done here.)
+
     Attributes:
         grid: the 2-D :class:`~lidarjax.maps.DecayRateMap` whose (blurred) cell rates are
             the field's values at the cell centres.

@@ -111,3 +111,6 @@ def test_guide_examples_run():
     d = np.linalg.norm(poles.xy[:, None] - ns["world"].pole_xy[None], axis=-1).min(1)
     assert np.median(d) < 0.2, d
     assert ll.shape == (3,) and ll[0] > ll[1] and ll[0] > ll[2]
+    # plots and gradient checks (guide pages plots.md, tests.md)
+    assert ns["ax"].get_xlabel() == "x (m)" and ns["ax_poles"].get_ylabel() == "y (m)"
+    assert ns["report"] is not None and ns["J"].shape == (2, 3)

@@ -63,6 +63,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+from _common import setup  # noqa: E402
 from _schemas import validate  # noqa: E402
 from hydra.core.hydra_config import HydraConfig  # noqa: E402
 from omegaconf import DictConfig, OmegaConf  # noqa: E402
@@ -86,6 +87,7 @@ def _init_worker(x64: bool) -> None:
     import jax
 
     jax.config.update("jax_enable_x64", bool(x64))
+    setup()  # spawned workers do the JAX work: they share the compilation cache
 
 
 # Scene / noise seeds of the generated splits (lidarjax.sim.synpeb_scan): scan i of
@@ -570,6 +572,7 @@ def _table(res: dict) -> str:
 @hydra.main(config_path="../configs", config_name="planes", version_base=None)
 def main(cfg: DictConfig) -> None:
     validate(cfg, "planes")
+    setup()  # JAX's persistent compilation cache
     out = Path(HydraConfig.get().runtime.output_dir)
     out.mkdir(parents=True, exist_ok=True)
     t_start = time.time()

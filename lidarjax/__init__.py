@@ -11,6 +11,7 @@ See ``README.md`` and ``../shared/DESIGN.md``.
 
 __version__ = "0.1.0"
 
+from ._runtime import enable_compilation_cache as enable_compilation_cache  # noqa: E402
 from ._runtime import pin_to_one_core as pin_to_one_core  # noqa: E402
 
-__all__ = ["__version__", "pin_to_one_core"]
+__all__ = ["__version__", "enable_compilation_cache", "pin_to_one_core"]

@@ -1,43 +1,20 @@
 """Test configuration: float64 everywhere, a PRNG key fixture, hypothesis profiles, the
 persistent compilation cache and a per-module release of compiled code."""
 
-import os
-from pathlib import Path
-
 import jax
 import pytest
 from hypothesis import HealthCheck, settings
 
+import lidarjax
+
 jax.config.update("jax_enable_x64", True)
 
 
-def _compilation_cache_dir() -> Path | None:
-    """Where JAX's persistent compilation cache lives for the test suite.
-
-    ``LIDARJAX_JAX_CACHE`` names a folder, or ``off`` disables the cache; the default is
-    ``$XDG_CACHE_HOME/lidarjax/jax-compilation-cache`` (``~/.cache/...``). A second run of
-    the suite then loads most executables instead of compiling them. The cache key holds
-    the jaxlib version, the XLA flags and the program, so a stale entry is never reused.
-    """
-    env = os.environ.get("LIDARJAX_JAX_CACHE", "")
-    if env.lower() == "off":
-        return None
-    if env:
-        return Path(env)
-    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
-    return Path(base) / "lidarjax" / "jax-compilation-cache"
-
-
-_cache = _compilation_cache_dir()
-if _cache is not None:
-    try:
-        _cache.mkdir(parents=True, exist_ok=True)
-    except OSError:  # read-only home: run without the cache
-        _cache = None
-if _cache is not None:
-    jax.config.update("jax_compilation_cache_dir", str(_cache))
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
-    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+# JAX's persistent compilation cache: ``LIDARJAX_JAX_CACHE`` names a folder (``off``, ``0``
+# or empty disable it), default ``$XDG_CACHE_HOME/lidarjax/jax-compilation-cache``
+# (``~/.cache/...``). A second run of the suite then loads most executables instead of
+# compiling them; an unwritable folder only warns.
+lidarjax.enable_compilation_cache()
 
 settings.register_profile(
     "default",

@@ -7,7 +7,9 @@ motion model), measurement update (add the measurement log-likelihood of every p
 pose estimate, and resampling when the effective sample size ``n_eff = 1 / sum w_i^2``
 falls below ``resample_fraction * n``. :meth:`ParticleFilter.run` is one ``lax.scan`` over
 a sequence of controls and measurements, so a whole log compiles once and runs without
-host round-trips; ``jax.vmap`` over independent runs (keys / initial states) works.
+host round-trips; ``jax.vmap`` over independent runs (keys / initial states) works. The
+sequence is padded to a bucket of steps (``step_bucket``: the next power of two, at least
+8), so logs of 100 and 120 steps share one compiled program.
 
 Optional extensions, all with static shapes (off by default, so the plain filter is
 unchanged):
@@ -154,6 +156,59 @@ def _as_tuple(b):
         return tuple(float(x) for x in np.asarray(b, np.float64).reshape(-1))
     except (TypeError, ValueError):
         return b
+
+
+MIN_STEP_BUCKET = 8
+"""The smallest number of steps :meth:`ParticleFilter.run` compiles for."""
+
+
+def step_bucket(n_steps: int) -> int:
+    """The number of steps :meth:`ParticleFilter.run` pads a sequence of ``n_steps`` to:
+    the next power of two, at least ``MIN_STEP_BUCKET`` (8): 1-8 -> 8, 100 and 120 -> 128,
+    129 -> 256. A new bucket compiles a new program. Fewer than half of the scanned steps
+    are padding, and those skip the measurement model, the costly part of a step."""
+    n_steps = int(n_steps)
+    if n_steps < 0:
+        raise ValueError(f"n_steps must be >= 0, got {n_steps}")
+    return max(MIN_STEP_BUCKET, 1 << max(n_steps - 1, 0).bit_length())
+
+
+def _steps_of(name: str, tree, n_steps: int | None) -> int:
+    """The common leading axis ``[T]`` of the leaves of ``tree`` (``ValueError`` naming
+    ``name`` if a leaf has none or another length than ``n_steps``)."""
+    for x in jax.tree.leaves(tree):
+        shape = jnp.shape(x)
+        if len(shape) == 0:
+            raise ValueError(f"{name} must have a leading [T] axis (steps), got a scalar leaf")
+        if n_steps is None:
+            n_steps = int(shape[0])
+        elif shape[0] != n_steps:
+            raise ValueError(
+                f"{name} must have a leading axis of {n_steps} steps (that of controls), "
+                f"got a leaf of shape {tuple(shape)}"
+            )
+    if n_steps is None:
+        raise ValueError(f"{name} must hold at least one array with a leading [T] axis")
+    return n_steps
+
+
+def _pad_steps(tree, n_pad: int):
+    """Append ``n_pad`` steps of zeros (``False``) to every leaf's leading axis. NumPy and
+    list leaves are padded in NumPy (no compilation, no device round trip); JAX arrays and
+    tracers with ``jnp`` (a small program per new length, or part of the caller's trace)."""
+
+    def pad(x):
+        if isinstance(x, jax.Array):  # includes tracers
+            return jnp.concatenate([x, jnp.zeros((n_pad, *x.shape[1:]), x.dtype)])
+        a = np.asarray(x)
+        return np.concatenate([a, np.zeros((n_pad, *a.shape[1:]), a.dtype)])
+
+    return jax.tree.map(pad, tree)
+
+
+def _select_tree(pred, a, b):
+    """``a`` where the scalar ``pred`` holds, else ``b`` (leaf by leaf, exact)."""
+    return jax.tree.map(lambda x, y: jax.lax.select(pred, x, y), a, b)
 
 
 class ParticleFilter(eqx.Module):
@@ -466,7 +521,30 @@ class ParticleFilter(eqx.Module):
     def run(
         self, state: ParticleState, controls, measurements, updates=None
     ) -> tuple[ParticleState, StepInfo]:
-        """Filter a whole sequence with one ``lax.scan`` (jit-compiled).
+        """Filter a whole sequence with one ``lax.scan`` (jit-compiled once per bucket).
+
+        Shape buckets: the ``T`` steps are padded to ``step_bucket(T)`` steps (the next
+        power of two, at least 8: 100 and 120 steps both run as 128) and the number of
+        real steps is a traced value, so sequences of every length in a bucket share one
+        compiled program (and one entry of the persistent compilation cache). A padded
+        step gets a zero control and measurement and no measurement update (the
+        measurement model is not evaluated; the motion model and the bookkeeping run);
+        its new state is discarded, so the state after step ``T`` is carried to the end
+        unchanged, and its ``StepInfo`` is sliced off. The results are those of the
+        unpadded scan for the same key and inputs (the same operations on the same
+        values). Trimming the outputs and padding JAX-array inputs compile tiny programs
+        per new ``T`` (NumPy inputs are padded in NumPy).
+
+        The particle count is not bucketed: a new ``n`` compiles a new program, because
+        padded particles would not reproduce the unpadded filter for the same key. The
+        motion model, a proposal and the injector are user callables that draw noise for
+        the padded shape; the first ``n`` draws match the unpadded ones only for
+        particle-major draws under JAX's partitionable threefry (the default since JAX
+        0.5, but a config switch). The plain filter's ``n`` enters as exact constants (the
+        threshold ``resample_fraction * n``, the reset ``-log n``, the estimate's
+        ``ceil(best_fraction * n)`` particles) that would become a traced count computed
+        in the weights' dtype: ``ceil(0.3 * 100)`` is 31 in float32, 30 in Python. And
+        KLD-sampling already uses the slots as its maximum particle count.
 
         Args:
             state: initial state (at least one particle).
@@ -480,15 +558,41 @@ class ParticleFilter(eqx.Module):
             The final state and the stacked ``[T]`` :class:`StepInfo`.
 
         Raises:
-            ValueError: ``state`` has no particles, or a concrete control is NaN/inf
-                (the message names ``controls`` and the step).
+            ValueError: ``state`` has no particles, a concrete control is NaN/inf (the
+                message names ``controls`` and the step), or ``controls``,
+                ``measurements`` and ``updates`` do not share a leading ``[T]`` axis.
         """
         _check_particle_count(state.log_weights, "state")
         _check_controls_concrete(controls, "controls", per_step=True)
-        return self._run(state, controls, measurements, updates)
+        n_steps = _steps_of("controls", controls, None)
+        _steps_of("measurements", measurements, n_steps)
+        if updates is None:
+            updates = np.ones(n_steps, bool)
+        elif not isinstance(updates, jax.Array):
+            updates = np.asarray(updates)
+        _steps_of("updates", updates, n_steps)
+        n_pad = step_bucket(n_steps) - n_steps
+        padded = _pad_steps((controls, measurements, updates), n_pad)
+        final, infos = self._run_padded(state, *padded, np.int32(n_steps))
+        return final, jax.tree.map(lambda x: x[:n_steps], infos)
+
+    @eqx.filter_jit
+    def _run_padded(self, state: ParticleState, controls, measurements, updates, n_live):
+        """The scan of :meth:`run` over the padded steps; steps ``>= n_live`` (traced) run
+        without measurement update and leave the state as it was."""
+        n_total = jax.tree.leaves(updates)[0].shape[0]
+        live = jnp.arange(n_total) < n_live
+
+        def body(s, xs):
+            c, z, u, keep = xs
+            new, info = self.step(s, c, z, u & keep)
+            return _select_tree(keep, new, s), info
+
+        return jax.lax.scan(body, state, (controls, measurements, updates, live))
 
     @eqx.filter_jit
     def _run(self, state: ParticleState, controls, measurements, updates=None):
+        """The unpadded scan (one program per ``T``): the reference :meth:`run` matches."""
         n_steps = jax.tree.leaves(controls)[0].shape[0]
         if updates is None:
             updates = jnp.ones(n_steps, bool)

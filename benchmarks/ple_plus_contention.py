@@ -1,11 +1,15 @@
 """PLE+ under CPU contention: one scan per call, unpinned vs pinned to one core, on an
-idle machine and with two busy-loop processes (issue #20).
+idle machine and with two busy-loop processes (issue #20), for both backends.
 
 Every condition runs in a fresh subprocess (pinning must precede JAX's start-up): 8
 Intel scans (180 rays) at J = 50, PLE+ with its defaults after one warm-up call per scan,
-timed with ``block_until_ready``. "loaded" starts two ``while True: pass`` processes for
-the duration of the subprocess (always stopped). The 1-minute load average is recorded
-before each condition. Writes ``benchmarks/results/ple_plus_contention.json``.
+timed with ``block_until_ready``, once with ``backend="jax"`` (the optimistix search, whose
+loop iterations XLA hands between pool threads) and once with ``backend="native"`` (the
+C++ kernel, serial on the calling thread; the default where the library is built).
+"loaded" starts two ``while True: pass`` processes for the duration of the subprocess
+(always stopped). The 1-minute load average is recorded before each condition. Each row
+holds both backends' times and ``speedup_native`` = median JAX time / median native time.
+Writes ``benchmarks/results/ple_plus_contention.json``.
 
 Usage: ``python benchmarks/ple_plus_contention.py [--scans N] [--thorough]``
 (``--thorough``: the experiment's search, ``rounds=10, restarts=4``; written to
@@ -41,17 +45,24 @@ from lidarjax.datasets import fetch, load_carmen
 from lidarjax.rays import from_scan
 log = load_carmen(fetch("intel"))
 rmax = log.usable_range_m
-times = []
+times = {"jax": [], "native": []}
 for s in range(0, 40 * n, 40):
     r = np.minimum(log.ranges_m[s], rmax)
     rays = from_scan(jaxlie.SE2.identity(), log.azimuths_rad, r, 0.0, rmax)
     ple = F.extract_polylines(rays, max_vertices=50, l_max_m=1.0, d_rm_m=0.5, closed=False)
-    jax.block_until_ready(F.optimize_polylines(ple, rays, **kw).map.vertices)  # warm-up
-    t = time.perf_counter()
-    jax.block_until_ready(F.optimize_polylines(ple, rays, **kw).map.vertices)
-    times.append(time.perf_counter() - t)
+    for backend in times:
+        run = lambda: F.optimize_polylines(ple, rays, backend=backend, **kw).map.vertices
+        jax.block_until_ready(run())  # warm-up
+        t = time.perf_counter()
+        jax.block_until_ready(run())
+        times[backend].append(time.perf_counter() - t)
 print(json.dumps(times))
 """
+
+
+def _stats(times: list[float]) -> dict:
+    s = sorted(times)
+    return {"times_s": times, "median_s": s[len(s) // 2], "max_s": s[-1]}
 
 
 def run(pin: str, loaded: bool, n: int, kw: dict) -> dict:
@@ -75,14 +86,14 @@ def run(pin: str, loaded: bool, n: int, kw: dict) -> dict:
     if out.returncode != 0:
         raise RuntimeError(out.stderr[-2000:])
     times = json.loads(out.stdout.strip().splitlines()[-1])
-    s = sorted(times)
+    jx, nat = _stats(times["jax"]), _stats(times["native"])
     return {
         "pin": pin,
         "loaded": loaded,
         "load_1min_before": load_before,
-        "times_s": times,
-        "median_s": s[len(s) // 2],
-        "max_s": s[-1],
+        "jax": jx,
+        "native": nat,
+        "speedup_native": jx["median_s"] / nat["median_s"],
     }
 
 
@@ -101,7 +112,10 @@ def main(argv=None) -> None:
             rows.append(run(pin, loaded, args.scans, kw))
             r = rows[-1]
             print(f"{'loaded' if loaded else 'idle':6s} {pin:8s} load {r['load_1min_before']:.2f}: "
-                  f"median {r['median_s']:.3f} s, max {r['max_s']:.3f} s", flush=True)  # fmt: skip
+                  f"jax median {r['jax']['median_s']:.3f} s, max {r['jax']['max_s']:.3f} s; "
+                  f"native median {r['native']['median_s']:.4f} s, "
+                  f"max {r['native']['max_s']:.4f} s; speedup {r['speedup_native']:.0f}x",
+                  flush=True)  # fmt: skip
     out = OUT.with_name(OUT.stem + ("_thorough" if args.thorough else "") + ".json")
     res = {
         "cpu_count": os.cpu_count(),

@@ -11,6 +11,7 @@ model, so the scan likelihood never decreases and the set of explained rays is u
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Sequence
 
 import equinox as eqx
@@ -22,7 +23,7 @@ import optimistix as optx
 from jaxtyping import Array, Float, Int
 
 from ..rays import RayBatch
-from ..raytrace import cross2, ray_segment
+from ..raytrace import _native, cross2, ray_segment
 from ._polyline import PolylineExtraction, _Scan, _scan_arrays, _scan_layout
 from ._polyline_map import PolylineMap, _first_hits
 
@@ -72,6 +73,22 @@ def _true_sse(m: PolylineMap, sc: _Scan):
     return jnp.sum(d2), hit
 
 
+def _first_segment(t: Array) -> tuple[Array, Array]:
+    """The segment each ray is held on in the surrogate, from ``t`` ``[K S]`` (distance
+    along ray ``k`` to segment ``s``, ``inf``: none): ``(index [K], distance [K])``.
+
+    The first hit, where distances within a relative ``1024 eps`` of the nearest count as
+    equal and the lowest index among them is taken (``0`` for a ray that hits nothing). A
+    ray through a vertex meets both segments there at the same distance up to round-off
+    (6e-15 relative at most on the shared logs, float64); a plain ``argmin`` would let
+    that round-off pick the segment, and with it the surrogate's minimum, so the search
+    would depend on the last bits of the vertices (the native kernel has the same rule).
+    """
+    tmin = jnp.min(t, axis=1)
+    near = t <= (tmin * (1 + 1024 * jnp.finfo(t.dtype).eps))[:, None]
+    return jnp.argmax(near, axis=1), tmin
+
+
 def _predecessors(succ: Array) -> Array:
     """``[n]`` predecessor of each slot from the successor links ``succ`` (``-1``: none)."""
     n = succ.shape[0]
@@ -94,6 +111,12 @@ def _component_labels(succ_p: Array, real: Array) -> Array:
         fwd = jnp.where(fwd >= 0, fwd[jnp.clip(fwd, 0, n - 1)], -1)
         bwd = jnp.where(bwd >= 0, bwd[jnp.clip(bwd, 0, n - 1)], -1)
     return jnp.where(real, lab, 0)
+
+
+def _restart_draws(key0: Array, i_round: Array, restarts: int, n_params: int, dtype) -> Array:
+    """``[restarts n_params 2]`` standard Gaussian draws of round ``i_round`` (uint32): the
+    random starts of both backends (the native kernel takes them as an input)."""
+    return jax.random.normal(jax.random.fold_in(key0, i_round), (restarts, n_params, 2), dtype)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -178,8 +201,8 @@ def _plus_one(m: PolylineMap, sc: _Scan, solver, n_params: int, cfg: _PlusSettin
         rays held on the segments they hit first there; returns the start as projected
         and the solution, both ``[S 2]``, and the solver statistics."""
         _, t_seg_s = block_hits(p_start)
-        s_first = jnp.argmin(t_seg_s, axis=1)
-        use = sc.refl & jnp.isfinite(jnp.min(t_seg_s, axis=1))
+        s_first, t_first = _first_segment(t_seg_s)
+        use = sc.refl & jnp.isfinite(t_first)
         pa, pb = s_first, jnp.clip(succ_p[s_first], 0, n_params - 1)
         y0 = (p_start, jnp.einsum("jd,jd->j", p_start - sc.origin, dir_p))
         p0 = positions(y0)
@@ -204,9 +227,7 @@ def _plus_one(m: PolylineMap, sc: _Scan, solver, n_params: int, cfg: _PlusSettin
             # solutions are offered polyline by polyline like the step fractions: a way
             # out of a local minimum of Eq. (10.4), as the paper's Nelder-Mead simplex
             # (5 % of each coordinate) finds one
-            z = jax.random.normal(
-                jax.random.fold_in(key0, i_round), (restarts, n_params, 2), pc.dtype
-            )
+            z = _restart_draws(key0, i_round, restarts, n_params, pc.dtype)
             rng_c = jnp.linalg.norm(pc - sc.origin, axis=-1)
             t_c0 = jnp.einsum("jd,jd->j", pc - sc.origin, dir_p)
             # the spreads cycle over the restarts
@@ -355,6 +376,94 @@ def _optimize(m: PolylineMap, sc: _Scan, solver, n_params: int, cfg: _PlusSettin
     return f(m, sc)
 
 
+def _results_of(codes: Array) -> optx.RESULTS:
+    """``optx.RESULTS`` of the shape of ``codes`` (0: successful, else max steps reached,
+    the code the JAX path's solve reports when it runs out of steps)."""
+    r = jax.vmap(
+        lambda c: optx.RESULTS.where(
+            c == 0, optx.RESULTS.successful, optx.RESULTS.nonlinear_max_steps_reached
+        )
+    )(codes.reshape(-1))
+    return jax.tree.map(lambda x: x.reshape(codes.shape), r)
+
+
+@eqx.filter_jit
+def _optimize_native(m: PolylineMap, sc: _Scan, n_params: int, cfg: _PlusSettings, fma: int = -1):
+    """:func:`_optimize` by the C++ kernel ``csrc/polyline_plus.cc`` (one FFI call for the
+    whole batch; the scans run one after the other on the calling thread). ``fma``: -1
+    contract multiply-adds as XLA does on this CPU (FMA if it has it), 0 never, 1 always
+    (for experiments: only -1 reproduces the JAX path's distances bit for bit)."""
+    if not _native._load():  # registers the FFI targets
+        raise RuntimeError(f"the native PLE+ kernel is unavailable: {_native.unavailable_reason()}")
+    dtype = m.vertices.dtype
+    batch, k = sc.ranges.shape[:-1], sc.ranges.shape[-1]
+    n = math.prod(batch)
+    key0 = jax.random.PRNGKey(cfg.seed)
+    z = jax.vmap(lambda i: _restart_draws(key0, i, cfg.restarts, n_params, dtype))(
+        jnp.arange(cfg.rounds, dtype=jnp.uint32)
+    )  # [rounds R n_params 2]: the JAX path's draws
+    sig = jnp.asarray(
+        [cfg.restart_sigma[i % len(cfg.restart_sigma)] for i in range(cfg.restarts)], dtype
+    ).reshape(cfg.restarts)
+    pat = jnp.asarray(cfg.pattern_m, dtype).reshape(len(cfg.pattern_m))
+    f = jax.ShapeDtypeStruct((n,), dtype)
+    i32 = jax.ShapeDtypeStruct((n,), jnp.int32)
+    call = jax.ffi.ffi_call(
+        f"lidarjax_polyline_plus_{_native._dt(dtype)}",
+        (jax.ShapeDtypeStruct((n, k, 2), dtype), f, f, f, i32, i32),
+        vmap_method="sequential",
+    )
+    verts, sse0, sse1, frac, codes, steps = call(
+        m.vertices.reshape(n, k, 2),
+        m.successor.reshape(n, k).astype(jnp.int32),
+        m.active.reshape(n, k),
+        sc.origin.reshape(n, 2).astype(dtype),
+        sc.dirs.reshape(n, k, 2).astype(dtype),
+        sc.ranges.reshape(n, k).astype(dtype),
+        sc.refl.reshape(n, k),
+        z,
+        sig,
+        pat,
+        max_steps=np.int64(cfg.max_steps),
+        rounds=np.int64(cfg.rounds),
+        n_params=np.int64(n_params),
+        fma=np.int64(fma),
+    )
+    out = PolylineMap(verts.reshape(m.vertices.shape), m.successor, m.active)
+    return (
+        out,
+        sse0.reshape(batch),
+        sse1.reshape(batch),
+        frac.reshape(batch),
+        _results_of(codes.reshape(batch)),
+        steps.reshape(batch),
+    )
+
+
+def _use_native(backend: str, default_solver: bool, arrays: Sequence[Array]) -> bool:
+    """Whether :func:`optimize_polylines` runs the C++ kernel (see its ``backend``)."""
+    _native.check_backend(backend)
+    if backend == "jax":
+        return False
+    traced = any(isinstance(x, jax.core.Tracer) for x in arrays)
+    cpu = all(d.platform == "cpu" for x in arrays if hasattr(x, "devices") for d in x.devices())
+    if backend == "native":
+        if not default_solver:
+            raise ValueError(
+                "backend='native' runs PLE+'s own Levenberg–Marquardt (the default solver); "
+                "pass solver=None or backend='jax' for a custom solver"
+            )
+        if traced:
+            raise ValueError("backend='native' needs concrete inputs (not under jit/vmap/grad)")
+        _native.resolve("native")  # RuntimeError when the library is unavailable
+        if not cpu:
+            raise RuntimeError("backend='native' requested but the inputs are not on a CPU")
+        return True
+    if not default_solver or traced or not cpu:
+        return False
+    return _native.resolve("auto") == "native"
+
+
 def default_plus_solver() -> optx.LevenbergMarquardt:
     """PLE+'s default solver: Levenberg–Marquardt (``rtol`` 1e-6, ``atol`` 1e-9) whose
     damped steps solve the normal equations by Cholesky.
@@ -377,12 +486,15 @@ def optimize_polylines(
     restart_sigma: float | Sequence[float] = RESTART_SIGMA,
     pattern_m: Sequence[float] = PATTERN_M,
     seed: int = 0,
+    backend: str = "auto",
 ) -> PolylineOptimization:
     """PLE+: move the vertices to maximise the scan likelihood (Eq. 10.4, section 10.4.3).
 
     With each reflected ray held on the segment it hits first (the ray-to-segment
-    association), its residual ``r_k - r̂_k`` measured to that segment's line makes
-    Eq. (10.4) a smooth least-squares problem, solved with ``solver`` (default
+    association; a ray through a vertex, which meets both of its segments at the same
+    distance up to round-off, is held on the one of the lower vertex slot), its residual
+    ``r_k - r̂_k`` measured to that segment's line makes Eq. (10.4) a smooth
+    least-squares problem, solved with ``solver`` (default
     :func:`default_plus_solver`: Levenberg–Marquardt). Interior vertices move freely; the
     first and last vertex of an open polyline move along the axis of their own ray
     (``2(J - I)`` unknowns for ``I`` open polylines). A weak anchor term
@@ -411,7 +523,27 @@ def optimize_polylines(
     ``sse_after_m2`` is the true error of the returned vertices (the fixed association
     alone lets a line run past a corner, which lowers the surrogate but raises the true
     error). The random starts come from ``seed`` and the round: results are
-    deterministic. Batched over ``[*scans]`` with ``vmap``.
+    deterministic. Batched over ``[*scans]``.
+
+    Backends: ``"jax"`` is the pure-JAX search (optimistix ``solver``, ``vmap`` over the
+    scans), the oracle. ``"native"`` is the same search as one C++ kernel through the XLA
+    FFI (``lidarjax/raytrace/csrc/polyline_plus.cc``) that runs the scans one after the
+    other on the calling thread: the same association, candidates, exact checks (distances
+    bit for bit those of the JAX path) and random starts (drawn by JAX), with its own
+    Levenberg–Marquardt written after optimistix's (same damping schedule, trust-region
+    update and termination; Cholesky of the damped normal equations). Per solve step the
+    two agree to round-off; converged solves agree to the resolution of the termination
+    test (errors within 1e-4 relative); with the defaults the errors agree to 1e-8 on the
+    shared logs. ``moved_fraction`` may count vertices moved by round-off differently. The
+    kernel exists because the JAX path hands every loop iteration between XLA's pool
+    threads, which other busy processes turn into waits: one 180-ray intel scan at J = 50
+    (defaults) took 0.16 s idle and 1.2 s median, 3.3 s max, with two busy loops on 2
+    cores (5.8 s median on a busier day), against 14 ms idle and 34 ms (max 60 ms) loaded
+    for the kernel (``benchmarks/ple_plus_contention.py``); ``rounds=10, restarts=4``:
+    1.0 s against 57 ms idle. ``"auto"`` (default) runs the kernel when the native
+    library is built, the inputs live on a CPU, ``solver`` is the default (``None`` or
+    equal to :func:`default_plus_solver`) and the inputs are concrete (not traced); else
+    the JAX path (``LIDARJAX_BACKEND`` overrides as for the ray kernels).
 
     Args:
         extraction: a :class:`PolylineExtraction` (or its map) of these rays, in the PLE
@@ -429,6 +561,7 @@ def optimize_polylines(
             sequence is cycled over the restarts (default 2 % and 5 %).
         pattern_m: lengths (m) of the per-vertex pattern moves (empty: none).
         seed: seed of the random starts.
+        backend: ``"auto"``, ``"native"`` or ``"jax"`` (see above).
 
     Returns:
         A :class:`PolylineOptimization`.
@@ -436,7 +569,10 @@ def optimize_polylines(
     Raises:
         ValueError: a bad ``extraction``, ``rays`` not in its layout, or a count or spread
             out of range (``max_steps``, ``rounds`` >= 1; ``restarts`` >= 0;
-            ``restart_sigma`` and every ``pattern_m`` finite and > 0).
+            ``restart_sigma`` and every ``pattern_m`` finite and > 0); an unknown
+            ``backend``, or ``backend="native"`` with a custom ``solver``.
+        RuntimeError: ``backend="native"`` but the native library is unavailable or the
+            inputs are not on a CPU.
     """
     m = extraction.map if isinstance(extraction, PolylineExtraction) else extraction
     if not isinstance(m, PolylineMap):
@@ -465,6 +601,11 @@ def optimize_polylines(
     pattern_m = tuple(float(x) for x in pattern_m)
     if not all(np.isfinite(x) and x > 0 for x in pattern_m):
         raise ValueError(f"pattern_m must hold finite lengths > 0 (m), got {pattern_m}")
+    _native.check_backend(backend)
+    default_solver = solver is None or eqx.tree_equal(solver, default_plus_solver()) is True
+    native = _use_native(
+        backend, default_solver, jax.tree.leaves((m, rays.origins, rays.directions, rays.ranges))
+    )
     if solver is None:
         solver = default_plus_solver()
     n_active = int(jnp.max(m.n_vertices)) if m.active.size else 0
@@ -472,5 +613,8 @@ def optimize_polylines(
     cfg = _PlusSettings(
         int(max_steps), int(rounds), int(restarts), restart_sigma, pattern_m, int(seed)
     )
-    out, s0, s1, frac, res, steps = _optimize(m, _scan_arrays(rays), solver, n_params, cfg)
+    if native:
+        out, s0, s1, frac, res, steps = _optimize_native(m, _scan_arrays(rays), n_params, cfg)
+    else:
+        out, s0, s1, frac, res, steps = _optimize(m, _scan_arrays(rays), solver, n_params, cfg)
     return PolylineOptimization(out, s0, s1, frac, res, steps)

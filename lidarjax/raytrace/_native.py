@@ -87,6 +87,12 @@ def _load() -> bool:
                             jax.ffi.pycapsule(getattr(lib, f"LidarjaxFold{dt}D{d}M{m}")),
                             platform="cpu",
                         )
+                # PLE+ (lidarjax.features.optimize_polylines), csrc/polyline_plus.cc
+                jax.ffi.register_ffi_target(
+                    f"lidarjax_polyline_plus_{dt.lower()}",
+                    jax.ffi.pycapsule(getattr(lib, f"LidarjaxPolylinePlus{dt}")),
+                    platform="cpu",
+                )
             ok = True
         except (OSError, AttributeError) as e:
             reason = f"the native library could not be loaded: {e}"

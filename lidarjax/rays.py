@@ -33,6 +33,8 @@ import jaxlie
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
+from ._checks import check
+
 HIT: int = 0
 """Ray reflected at a range in ``[r_min, r_max)``."""
 SUB: int = 1
@@ -78,7 +80,7 @@ def reject_where(x, bad: Callable, message: str, deps: tuple = ()):
             )
         return x
     x = jnp.asarray(x)
-    return eqx.error_if(x, bad(jnp, x), message)
+    return check(x, bad(jnp, x), message)
 
 
 def check_finite_nonnegative(x: ArrayLike, name: str) -> Array:
@@ -337,18 +339,14 @@ def _check_limit_values(r_min, r_max, *, strict: bool = True):
         if not (np.isfinite(lo) and lo >= 0):
             raise ValueError(f"r_min must be finite and >= 0, got {lo}")
     else:
-        r_min = eqx.error_if(
-            r_min, ~(jnp.isfinite(r_min) & (r_min >= 0)), "r_min must be finite and >= 0"
-        )
+        r_min = check(r_min, ~(jnp.isfinite(r_min) & (r_min >= 0)), "r_min must be finite and >= 0")
     if lo_c and hi_c:
         hi = float(r_max)
         if not (hi > lo if strict else hi >= lo):
             raise ValueError(f"r_max must be {relation} r_min={lo}, got {hi}")
     else:
         ok = (r_max > r_min) if strict else (r_max >= r_min)
-        r_max = eqx.error_if(
-            jnp.asarray(r_max), ~ok, f"r_max must be {relation} r_min (and not NaN)"
-        )
+        r_max = check(jnp.asarray(r_max), ~ok, f"r_max must be {relation} r_min (and not NaN)")
     return r_min, r_max
 
 
@@ -553,7 +551,7 @@ def from_spinning_scan(
         if bool(jnp.any(jnp.isinf(r))) and not np.isfinite(float(hi)):
             raise ValueError("ranges_m has no-return (+inf) beams: give a finite r_max")
     else:
-        r = eqx.error_if(
+        r = check(
             r,
             jnp.isinf(r) & ~jnp.isfinite(hi),
             "ranges_m has no-return (+inf) beams: give a finite r_max",

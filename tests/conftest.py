@@ -1,6 +1,8 @@
 """Test configuration: float64 everywhere, a PRNG key fixture, hypothesis profiles, the
 persistent compilation cache and a per-module release of compiled code."""
 
+import os
+
 import jax
 import pytest
 from hypothesis import HealthCheck, settings
@@ -8,6 +10,11 @@ from hypothesis import HealthCheck, settings
 import lidarjax
 
 jax.config.update("jax_enable_x64", True)
+
+# No test downloads from the internet: registry entries with a public URL would otherwise
+# be fetched into the user cache on a machine with network access (the download path is
+# tested against a local HTTP server, tests/test_registry_download.py).
+os.environ.setdefault("LIDARJAX_OFFLINE", "1")
 
 
 # JAX's persistent compilation cache: ``LIDARJAX_JAX_CACHE`` names a folder (``off``, ``0``

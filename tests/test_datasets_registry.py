@@ -66,7 +66,12 @@ def test_registry_names_and_entries():
     for name, entry in REGISTRY.items():
         assert isinstance(entry, DataFile)
         assert re.fullmatch(r"[0-9a-f]{64}", entry.sha256), name
-        assert entry.url is None
+        if name == "synpeb-test-100":  # no public location known
+            assert entry.url is None
+        else:  # pinned to a commit, so the bytes (and the checksum) cannot change
+            assert re.fullmatch(
+                r"https://raw\.githubusercontent\.com/[\w.-]+/[\w.-]+/[0-9a-f]{40}/.+", entry.url
+            ), (name, entry.url)
         assert entry.description
         assert not Path(entry.relpath).is_absolute()
     assert REGISTRY["intel"].relpath == "carmen/intel-corrected.log.gz"
@@ -225,6 +230,7 @@ def test_data_dirs_order(tmp_path, monkeypatch):
 
 
 def test_url_entries_download_into_cache(tmp_path, monkeypatch):
+    monkeypatch.delenv("LIDARJAX_OFFLINE", raising=False)
     digest = hashlib.sha256(b"hello\n").hexdigest()
     entry = DataFile("extra/hello.txt", digest, "test file", url="https://example.invalid/hello")
     monkeypatch.setitem(REGISTRY, "hello", entry)
@@ -250,6 +256,7 @@ def test_url_entries_download_into_cache(tmp_path, monkeypatch):
 
 
 def test_download_failure_is_data_not_found(tmp_path, monkeypatch):
+    monkeypatch.delenv("LIDARJAX_OFFLINE", raising=False)
     entry = DataFile("extra/x.bin", "0" * 64, "test file", url="https://example.invalid/x")
     monkeypatch.setitem(REGISTRY, "x", entry)
     monkeypatch.setattr(_registry, "_cache_dir", lambda: tmp_path)

@@ -334,3 +334,63 @@ def test_bad_inputs():
         trajectory_errors(still, still)
     with pytest.raises(ValueError, match="no evaluation point"):
         trajectory_errors(gt, gt, valid=np.zeros(11, dtype=bool))
+
+
+# -- absolute trajectory error (per pose, after SE(2) alignment) ---------------------------
+
+
+def _rigid(poses, theta, t):
+    c, s = np.cos(theta), np.sin(theta)
+    xy = poses[:, :2] @ np.array([[c, s], [-s, c]]) + t
+    return np.column_stack([xy, poses[:, 2] + theta])
+
+
+def test_ate_undoes_a_rigid_motion_and_reports_it():
+    from lidarjax.metrics import absolute_trajectory_error, align_se2
+
+    rng = np.random.default_rng(0)
+    truth = np.column_stack([np.cumsum(rng.normal(0, 1, (50, 2)), 0), rng.uniform(-3, 3, 50)])
+    est = _rigid(truth, -0.7, np.array([3.0, -2.0]))  # truth moved rigidly
+    theta, t = align_se2(est, truth)
+    np.testing.assert_allclose(theta, 0.7, atol=1e-12)
+    ate = absolute_trajectory_error(est, truth)
+    assert ate.rmse_m < 1e-12 and ate.n == 50
+    np.testing.assert_allclose(ate.aligned[:, :2], truth[:, :2], atol=1e-12)
+    raw = absolute_trajectory_error(est, truth, align=False)
+    dist = np.linalg.norm(est[:, :2] - truth[:, :2], axis=1)  # brute force
+    np.testing.assert_allclose(raw.rmse_m, np.sqrt(np.mean(dist**2)), rtol=1e-12)
+    np.testing.assert_allclose(raw.max_m, dist.max(), rtol=1e-12)
+
+
+def test_ate_alignment_minimises_the_squared_error():
+    """No nearby rigid motion does better than the SVD alignment (brute-force check)."""
+    from lidarjax.metrics import absolute_trajectory_error
+
+    rng = np.random.default_rng(1)
+    truth = np.column_stack([rng.uniform(-10, 10, (40, 2)), np.zeros(40)])
+    est = _rigid(truth, 0.3, np.array([1.0, 2.0])) + rng.normal(0, 0.2, (40, 3))
+    best = absolute_trajectory_error(est, truth).rmse_m
+    for dth in (-1e-3, 1e-3):
+        for dt in ([1e-3, 0], [0, -1e-3]):
+            ate = absolute_trajectory_error(est, truth)
+            moved = _rigid(ate.aligned, dth, np.asarray(dt))
+            assert absolute_trajectory_error(moved, truth, align=False).rmse_m > best
+
+
+def test_ate_masks_and_bad_input():
+    from lidarjax.metrics import absolute_trajectory_error
+
+    truth = np.column_stack([np.arange(6.0), np.zeros(6), np.zeros(6)])
+    est = truth + [0.1, 0.0, 0.0]
+    est[2] = np.nan  # a row without an estimate is skipped, not an error
+    ate = absolute_trajectory_error(est, truth, align=False)
+    assert ate.n == 5 and np.isnan(ate.errors_m[2])
+    np.testing.assert_allclose(ate.rmse_m, 0.1)
+    with pytest.raises(ValueError, match="estimate_xy_yaw"):
+        absolute_trajectory_error(est[:, :2], truth)
+    with pytest.raises(ValueError, match="same shape"):
+        absolute_trajectory_error(est[:4], truth)
+    with pytest.raises(ValueError, match="valid"):
+        absolute_trajectory_error(est, truth, valid=np.ones(3, bool))
+    with pytest.raises(ValueError, match="at least 2"):
+        absolute_trajectory_error(est, truth, valid=np.eye(6, dtype=bool)[0])

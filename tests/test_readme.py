@@ -31,13 +31,18 @@ GUIDE_ORDER = (
 )
 
 
+# Pages whose examples run on their own, each in a fresh namespace (they reuse names such
+# as ``log`` and ``out`` that the pages above define differently).
+STANDALONE = ("formats.md", "command-line.md")
+
+
 def python_blocks(path: Path) -> list[str]:
     return re.findall(r"```python\n(.*?)```", path.read_text(), flags=re.S)
 
 
 def test_guide_order_lists_every_page():
     """A new guide page joins GUIDE_ORDER, so its examples run too."""
-    assert sorted(GUIDE_ORDER) == sorted(p.name for p in GUIDE.glob("*.md"))
+    assert sorted(GUIDE_ORDER + STANDALONE) == sorted(p.name for p in GUIDE.glob("*.md"))
 
 
 @pytest.mark.slow
@@ -54,6 +59,17 @@ def test_readme_quickstart_runs():
     assert track.shape == (19, 3)
     err = np.linalg.norm(track[:, :2] - ns["log"].poses[odd[1:], :2], axis=1)
     assert err.mean() < 0.2, err
+    # the formats section
+    out = ns["out"]
+    assert ns["bag_log"].ranges_m.shape == (50, 180)
+    assert np.array_equal(ns["bag_log"].ranges_m, ns["log"].ranges_m[:50].astype(np.float32))
+    assert (ns["crop_ply"].height, ns["crop_ply"].width) == (100, 100)
+    assert ns["organised"].cloud.height == 16 and ns["organised"].n_dropped == 0
+    for name in ("crop.pcd", "intel.yaml", "intel.pgm", "intel.npz", "track.tum"):
+        assert (out / name).is_file(), name
+    for name in ("track.kitti", "scan.csv", "scan.svg", "planes.ply"):
+        assert (out / name).is_file(), name
+    assert ns["ds"].read_tum(out / "track.tum").poses.shape[0] == 19
 
 
 @pytest.mark.slow
@@ -114,3 +130,21 @@ def test_guide_examples_run():
     # plots and gradient checks (guide pages plots.md, tests.md)
     assert ns["ax"].get_xlabel() == "x (m)" and ns["ax_poles"].get_ylabel() == "y (m)"
     assert ns["report"] is not None and ns["J"].shape == (2, 3)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", STANDALONE)
+def test_standalone_guide_pages_run(name, tmp_path, monkeypatch):
+    """The formats and command-line pages, each from a fresh namespace; they leave their
+    files in temporary folders, and the last page's results are checked."""
+    monkeypatch.chdir(ROOT)
+    blocks = python_blocks(GUIDE / name)
+    assert len(blocks) >= 2 if name == "formats.md" else len(blocks) >= 1
+    ns: dict = {}
+    for code in blocks:
+        exec(compile(code, str(GUIDE / name), "exec"), ns)
+    if name == "formats.md":
+        assert ns["back"] is not None and (ns["out"] / "scan100.svg").is_file()
+        assert (ns["out"] / "intel.pgm").is_file() and (ns["out"] / "gt.tum").is_file()
+    else:
+        assert (ns["out"] / "intel" / "map.npz").is_file()

@@ -1,8 +1,12 @@
 """Reader and writer for PCD (Point Cloud Data, format v0.7) files.
 
 Supports the three PCL encodings: ``ascii``, ``binary`` (little-endian point-major packed records)
-and ``binary_compressed`` (LZF-compressed, field-major). The LZF codec is implemented here in
-pure Python so that no compiled dependency is needed.
+and ``binary_compressed`` (LZF-compressed, field-major). LZF is encoded and decoded by the
+compiled ``lzf`` module (python-lzf, liblzf) when it is importable, else by the pure-Python
+codec of this module; :func:`lzf_backend` tells which, and the environment variable
+``LIDARJAX_LZF`` (``auto`` | ``python-lzf`` | ``pure-python``) forces one. Both codecs read
+exactly the same streams (liblzf's format, bounds-checked) and write streams that either
+one (and PCL) reads.
 
 A PCD file stores ``POINTS = WIDTH * HEIGHT`` points in row-major order (the column index runs
 fastest). Every field is returned as an array of shape ``[height, width]`` (or
@@ -11,8 +15,9 @@ fastest). Every field is returned as an array of shape ``[height, width]`` (or
 
 NumPy only; nothing here is called inside ``jit``.
 
-Length (~900 lines): one file format, read and written in its three encodings with the
-LZF codec, each path validating every header field so that a corrupted file is an error.
+Length (~1000 lines): one file format, read and written in its three encodings with the
+LZF codec (and its switch to python-lzf), each path validating every header field so that a
+corrupted file is an error.
 """
 
 from __future__ import annotations
@@ -26,10 +31,15 @@ from typing import Any
 
 import numpy as np
 
+try:  # python-lzf: liblzf compiled; optional (the pure-Python codec below is the fallback)
+    import lzf as _lzf_ext
+except ImportError:  # pragma: no cover - depends on the environment
+    _lzf_ext = None
+
 from ._errors import DatasetFormatError
 from ._text import NumberSyntaxError, is_decimal, is_integer, parse_integers, parse_numbers
 
-__all__ = ["PointCloud", "read_pcd", "write_pcd"]
+__all__ = ["PointCloud", "lzf_backend", "read_pcd", "write_pcd"]
 
 # (TYPE, SIZE) -> numpy dtype (native byte order).
 _PCD_DTYPES: dict[tuple[str, int], np.dtype] = {
@@ -631,7 +641,7 @@ def _read_binary_compressed(path: Path, header: _Header, body: bytes) -> list[np
             expected=expected,
         )
     try:
-        plain = _lzf_decompress(body[8:], usize)
+        plain = _lzf_decode(body[8:], usize)
     except _LZFError as err:
         raise DatasetFormatError(path, f"corrupt LZF stream: {err}", expected=expected) from None
     columns: list[np.ndarray] = []
@@ -714,7 +724,7 @@ def write_pcd(
         body = table.tobytes()
     else:
         plain = b"".join(a.astype(a.dtype.newbyteorder("<")).tobytes() for a in arrays)
-        packed = _lzf_compress(plain)
+        packed = _lzf_encode(plain)
         body = struct.pack("<II", len(packed), len(plain)) + packed
     path.write_bytes(header + body)
     return path
@@ -750,6 +760,105 @@ _LZF_SKIP_SHIFT = 6  # after 64 consecutive misses step 2 bytes, after 128 step 
 
 class _LZFError(ValueError):
     """An LZF stream is corrupt or does not decode to the expected size."""
+
+
+LZF_ENV = "LIDARJAX_LZF"
+"""Environment variable choosing the LZF codec: ``auto`` (default), ``python-lzf``,
+``pure-python``."""
+_LZF_BACKENDS = ("python-lzf", "pure-python")
+
+
+def lzf_backend() -> str:
+    """The LZF codec that :func:`read_pcd` and :func:`write_pcd` use for ``binary_compressed``.
+
+    ``"python-lzf"`` (the compiled ``lzf`` module, liblzf; tens of times faster) when it is
+    importable, else ``"pure-python"`` (this module's codec). The environment variable
+    ``LIDARJAX_LZF`` forces one: ``auto`` (the default), ``python-lzf`` or ``pure-python``;
+    it is read at every call, so it can be changed at run time (e.g. with pytest's
+    ``monkeypatch.setenv``). Both codecs accept exactly the same streams and write streams
+    that both (and PCL) read; the compressed bytes may differ.
+
+    Returns:
+        ``"python-lzf"`` or ``"pure-python"``.
+
+    Raises:
+        ValueError: If ``LIDARJAX_LZF`` holds another value.
+        ImportError: If ``LIDARJAX_LZF=python-lzf`` but ``lzf`` cannot be imported.
+    """
+    choice = os.environ.get(LZF_ENV, "auto").strip().lower() or "auto"
+    if choice == "auto":
+        return "python-lzf" if _lzf_ext is not None else "pure-python"
+    if choice not in _LZF_BACKENDS:
+        raise ValueError(
+            f"environment variable {LZF_ENV} must be one of auto, python-lzf, pure-python; "
+            f"got {os.environ[LZF_ENV]!r}"
+        )
+    if choice == "python-lzf" and _lzf_ext is None:
+        raise ImportError(
+            f"{LZF_ENV}=python-lzf, but the 'lzf' module (pip install python-lzf) is not importable"
+        )
+    return choice
+
+
+def _lzf_encode(data: bytes, backend: str | None = None) -> bytes:
+    """LZF-compresses ``data`` with ``backend`` (default: :func:`lzf_backend`).
+
+    PCL's format has no "stored" mode: incompressible data is written as an LZF stream of
+    literal runs, slightly longer than the input (one control byte per 32 bytes), as the
+    pure-Python encoder does. liblzf returns nothing when its output would exceed the given
+    bound, so python-lzf gets the bound of that worst case plus a margin; should it still
+    refuse, the pure-Python encoder writes the stream. An empty input is an empty stream.
+    """
+    backend = lzf_backend() if backend is None else backend
+    data = bytes(data)
+    if backend == "pure-python" or not data:
+        return _lzf_compress(data)
+    if backend != "python-lzf":
+        raise ValueError(f"backend must be one of {_LZF_BACKENDS}, got {backend!r}")
+    if _lzf_ext is None:
+        raise ImportError("backend 'python-lzf' needs the 'lzf' module (pip install python-lzf)")
+    packed = _lzf_ext.compress(data, len(data) + len(data) // 32 + 16)
+    return _lzf_compress(data) if packed is None else packed
+
+
+def _lzf_decode(data: bytes, expected_size: int, backend: str | None = None) -> bytes:
+    """Decompresses an LZF stream with ``backend`` (default: :func:`lzf_backend`).
+
+    Accepts exactly the streams :func:`_lzf_decompress` accepts (liblzf checks every
+    literal run and back-reference against both buffers) and returns the same bytes.
+
+    Raises:
+        _LZFError: If the stream is corrupt or does not decode to ``expected_size`` bytes.
+    """
+    backend = lzf_backend() if backend is None else backend
+    data = bytes(data)
+    if backend == "pure-python":
+        return _lzf_decompress(data, expected_size)
+    if backend != "python-lzf":
+        raise ValueError(f"backend must be one of {_LZF_BACKENDS}, got {backend!r}")
+    if _lzf_ext is None:
+        raise ImportError("backend 'python-lzf' needs the 'lzf' module (pip install python-lzf)")
+    # liblzf cannot tell an empty result from an error: handle the empty cases here.
+    if expected_size == 0:
+        if data:
+            raise _LZFError("stream decodes to more than the expected 0 bytes")
+        return b""
+    if not data:
+        raise _LZFError(f"stream decodes to 0 bytes, expected {expected_size} (truncated stream?)")
+    try:
+        out = _lzf_ext.decompress(data, expected_size)
+    except ValueError:
+        raise _LZFError(
+            "liblzf rejects the stream: a literal run or back-reference runs past the end "
+            "of the input, or a back-reference points before the start of the output"
+        ) from None
+    if out is None:
+        raise _LZFError(f"stream decodes to more than the expected {expected_size} bytes")
+    if len(out) != expected_size:
+        raise _LZFError(
+            f"stream decodes to {len(out)} bytes, expected {expected_size} (truncated stream?)"
+        )
+    return out
 
 
 def _lzf_decompress(data: bytes, expected_size: int) -> bytes:

@@ -3,9 +3,24 @@
 Every data file the project reads is registered here under a short name with its SHA-256.
 :func:`fetch` looks for the file in the folders returned by :func:`data_dirs` (in order),
 verifies its checksum and returns its path. Files that are in no folder are downloaded into
-the user cache with :mod:`pooch` when the registry knows a URL; otherwise
-:class:`~lidarjax.datasets.DataNotFoundError` explains where the file was looked for and how
-to provide it.
+the user cache with :mod:`pooch` (and verified) when a download location is known: the
+mirror ``$LIDARJAX_DATA_URL/<relpath>`` if that variable is set, then the entry's own
+``url``; otherwise :class:`~lidarjax.datasets.DataNotFoundError` explains where the file was
+looked for and how to provide it.
+
+Public locations (each checked against the registered SHA-256 by hashing the files in a
+clone of the repository, pinned to a commit):
+
+- the 13 SLAM-corrected CARMEN logs (incl. ``aces`` and ``seattle``, not in the shared
+  folder): the data folder of the PLE repository (A. Schaefer, ``acschaefer/ple``);
+- ``kitti-00-poses`` / ``kitti-00-times``: the KITTI-00 test data of the evo package
+  (``MichaelGrupp/evo``, ``test/data/KITTI_00_gt.txt`` and ``KITTI_00_gt_times.txt``);
+- ``synpeb-test-100`` (a crop made for this project): no public location, ``url=None``.
+
+Environment variables: ``LIDARJAX_DATA`` (a folder searched first), ``LIDARJAX_DATA_URL``
+(a mirror base URL: ``<base>/<relpath>``, e.g. ``file:`` or ``http:`` URLs of a copy of the
+shared folder), ``LIDARJAX_CACHE`` (the user cache, default ``pooch.os_cache("lidarjax")``)
+and ``LIDARJAX_OFFLINE`` (``1``: never download).
 
 The shared data folder (``../shared/data`` from the project root) holds the eleven CARMEN
 logs, a SynPEB crop and the KITTI sequence 00 trajectory; see its ``README.md``.
@@ -22,10 +37,29 @@ import pooch
 
 from ._errors import DataChecksumError, DataNotFoundError
 
-__all__ = ["DataFile", "REGISTRY", "available", "data_dirs", "fetch"]
+__all__ = ["DataFile", "REGISTRY", "available", "data_dirs", "download_urls", "fetch"]
 
 ENV_VAR = "LIDARJAX_DATA"
 """Environment variable naming a folder searched before all others."""
+
+MIRROR_ENV = "LIDARJAX_DATA_URL"
+"""Environment variable holding a mirror base URL; a file is downloaded from
+``<base>/<relpath>`` before the entry's own ``url`` is tried."""
+
+CACHE_ENV = "LIDARJAX_CACHE"
+"""Environment variable overriding the user cache folder (where downloads go)."""
+
+OFFLINE_ENV = "LIDARJAX_OFFLINE"
+"""Environment variable: ``1`` / ``true`` / ``yes`` / ``on`` turn downloads off."""
+
+_PLE_URL = (  # acschaefer/ple at the commit that added its data folder (2018-07-26)
+    "https://raw.githubusercontent.com/acschaefer/ple/"
+    "8af88b28759f8a48b1bf33083a85f2013907c41d/data/carmen/{name}-corrected.log.gz"
+)
+_EVO_URL = (  # MichaelGrupp/evo's KITTI-00 test data (blobs unchanged since 2019-01-16)
+    "https://raw.githubusercontent.com/MichaelGrupp/evo/"
+    "6c1cbf18380c934a6699d8a5c1b6948d1f6220aa/test/data/{file}"
+)
 
 
 @dataclass(frozen=True)
@@ -168,6 +202,7 @@ def _build_registry() -> dict[str, DataFile]:
             relpath=f"carmen/{name}-corrected.log.gz",
             sha256=sha,
             description=f"SLAM-corrected CARMEN laser log: {place} (Radish)",
+            url=_PLE_URL.format(name=name),
             metadata={
                 "format": "carmen",
                 "n_scans": n_scans,
@@ -185,12 +220,14 @@ def _build_registry() -> dict[str, DataFile]:
         relpath="trajectories/kitti_00_poses.txt",
         sha256="90791a4113df979b149fa9e1104e960ea59f525a8318a202dbb6aec1a3d88793",
         description="KITTI odometry sequence 00 ground-truth poses (3x4 [R|t] per line)",
+        url=_EVO_URL.format(file="KITTI_00_gt.txt"),
         metadata={"format": "kitti-poses", "n_poses": 4541, "shipped": True},
     )
     reg["kitti-00-times"] = DataFile(
         relpath="trajectories/kitti_00_times.txt",
         sha256="99a2899466cdc28dd292b4856d214a8b0aab035b91b02bb6afcb4ff363e7d421",
         description="KITTI odometry sequence 00 timestamps in seconds",
+        url=_EVO_URL.format(file="KITTI_00_gt_times.txt"),
         metadata={"format": "kitti-times", "n_poses": 4541, "shipped": True},
     )
     return dict(sorted(reg.items()))
@@ -204,7 +241,17 @@ _HASH_CACHE: dict[tuple[str, int, int], str] = {}
 
 
 def _cache_dir() -> Path:
+    """The user cache: ``$LIDARJAX_CACHE`` if set and non-empty, else
+    ``pooch.os_cache("lidarjax")`` (``$XDG_CACHE_HOME/lidarjax``, default
+    ``~/.cache/lidarjax`` on Linux)."""
+    env = os.environ.get(CACHE_ENV, "")
+    if env:
+        return Path(env).expanduser()
     return Path(pooch.os_cache("lidarjax"))
+
+
+def _offline() -> bool:
+    return os.environ.get(OFFLINE_ENV, "").strip().lower() in ("1", "true", "yes", "on")
 
 
 def data_dirs() -> list[Path]:
@@ -214,7 +261,8 @@ def data_dirs() -> list[Path]:
     2. ``<repo>/../shared/data`` where ``<repo>`` is the folder containing the ``lidarjax``
        package, if it exists.
     3. ``<cwd>/../shared/data`` if it exists and differs from 2.
-    4. The user cache ``pooch.os_cache("lidarjax")`` (also where downloads go).
+    4. The user cache ``$LIDARJAX_CACHE``, default ``pooch.os_cache("lidarjax")`` (also
+       where downloads go).
 
     Returns:
         Distinct folders, in the order :func:`fetch` tries them.
@@ -265,19 +313,46 @@ def _verify(path: Path, entry: DataFile) -> None:
         )
 
 
-def fetch(name: str) -> Path:
+def download_urls(name: str) -> list[str]:
+    """Where :func:`fetch` downloads a registered file from, in the order it tries them.
+
+    Args:
+        name: Short registry name.
+
+    Returns:
+        ``$LIDARJAX_DATA_URL/<relpath>`` when that variable is set (a trailing ``/`` of
+        the base is ignored), then the entry's own ``url`` when known; empty when neither.
+
+    Raises:
+        ValueError: ``name`` is not registered.
+    """
+    entry = _lookup(name)
+    urls = []
+    base = os.environ.get(MIRROR_ENV, "").strip()
+    if base:
+        urls.append(f"{base.rstrip('/')}/{entry.relpath}")
+    if entry.url is not None and entry.url not in urls:
+        urls.append(entry.url)
+    return urls
+
+
+def fetch(name: str, *, progress: bool = False) -> Path:
     """Locate (or download) a registered data file and verify its SHA-256.
 
     Args:
         name: Short registry name, e.g. ``"intel"`` or ``"kitti-00-poses"``.
+        progress: Show a progress bar (tqdm) while downloading.
 
     Returns:
         Path of the verified file.
 
     Raises:
         ValueError: ``name`` is not registered (the message lists the valid names).
-        DataChecksumError: The first copy found has the wrong checksum.
-        DataNotFoundError: The file is in no search folder and cannot be downloaded.
+        DataChecksumError: The first copy found, or a downloaded copy, has the wrong
+            checksum (a wrong download is deleted).
+        DataNotFoundError: The file is in no search folder and cannot be downloaded (no
+            URL known, downloads turned off by ``$LIDARJAX_OFFLINE``, or every download
+            failed).
     """
     entry = _lookup(name)
     dirs = data_dirs()
@@ -286,37 +361,67 @@ def fetch(name: str) -> Path:
         if path.is_file():
             _verify(path, entry)
             return path
-    if entry.url is not None:
-        return _download(name, entry)
     tried = "\n".join(f"  - {d}" for d in dirs)
+    urls = download_urls(name)
+    if urls and not _offline():
+        return _download(name, entry, urls, tried, progress)
+    why = (
+        f"Downloads are turned off ({OFFLINE_ENV} is set)."
+        if urls
+        else f"No download URL is known (set {MIRROR_ENV} to a mirror of the data folder)."
+    )
     raise DataNotFoundError(
-        f"data file {name!r} ({entry.relpath}) not found; looked in:\n{tried}\n"
-        f"No download URL is known. Put the file at <folder>/{entry.relpath} and point "
-        f"the {ENV_VAR} environment variable at <folder> (sha256 {entry.sha256})."
+        f"data file {name!r} ({entry.relpath}) not found; looked in:\n{tried}\n{why} "
+        f"Put the file at <folder>/{entry.relpath} and point the {ENV_VAR} environment "
+        f"variable at <folder> (sha256 {entry.sha256})."
     )
 
 
-def _download(name: str, entry: DataFile) -> Path:
-    cache = _cache_dir()
-    target = cache / entry.relpath
-    try:
-        got = pooch.retrieve(
-            entry.url,
-            known_hash=f"sha256:{entry.sha256}",
-            fname=target.name,
-            path=target.parent,
-            progressbar=False,
-        )
-    except ValueError as exc:  # pooch raises ValueError on a hash mismatch
-        raise DataChecksumError(
-            f"downloaded {entry.url} for {name!r} but its checksum is wrong: {exc}"
-        ) from exc
-    except Exception as exc:  # network, HTTP or filesystem errors
-        raise DataNotFoundError(
-            f"data file {name!r} ({entry.relpath}) is not available locally and downloading "
-            f"{entry.url} failed: {exc}. Provide it via {ENV_VAR}."
-        ) from exc
-    return Path(got)
+def _download(name: str, entry: DataFile, urls: list[str], tried: str, progress: bool) -> Path:
+    """Download ``entry`` from the first of ``urls`` that answers, into the user cache.
+
+    A copy with the wrong checksum is an error at once (pooch deletes it), not a reason to
+    try the next URL: a mirror that serves wrong data must be noticed.
+    """
+    target = _cache_dir() / entry.relpath
+    # folders pooch creates for the download, deepest first: removed again if it fails
+    created = [p for p in (target.parent, *target.parent.parents) if not p.exists()]
+    failures = []
+    for url in urls:
+        try:
+            got = pooch.retrieve(
+                url,
+                known_hash=f"sha256:{entry.sha256}",
+                fname=target.name,
+                path=target.parent,
+                progressbar=progress,
+            )
+        except ValueError as exc:  # pooch raises ValueError on a hash mismatch
+            _remove_empty(created)
+            raise DataChecksumError(
+                f"downloaded {url} for {name!r} but its checksum is wrong (the download "
+                f"was deleted): {exc}"
+            ) from exc
+        except Exception as exc:  # network, HTTP or filesystem errors: try the next URL
+            failures.append(f"  - {url}: {exc}")
+            continue
+        return Path(got)
+    _remove_empty(created)
+    failed = "\n".join(failures)
+    raise DataNotFoundError(
+        f"data file {name!r} ({entry.relpath}) not found; looked in:\n{tried}\n"
+        f"and downloading failed:\n{failed}\nProvide it via {ENV_VAR} (a folder) or "
+        f"{MIRROR_ENV} (a mirror base URL)."
+    )
+
+
+def _remove_empty(folders: list[Path]) -> None:
+    """Remove the folders (deepest first) that are still empty."""
+    for folder in folders:
+        try:
+            folder.rmdir()
+        except OSError:  # not empty (another download), or already gone
+            pass
 
 
 def available() -> list[str]:

@@ -47,6 +47,7 @@ import numpy as np
 from jax.scipy.special import betainc
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
+from .. import _checks
 from ..maps import BetaPosteriorMap, beta_posterior
 from ..rays import RayBatch
 from ..raytrace import GridSpec, GridStats, accumulate, check_backend
@@ -554,7 +555,7 @@ def matched_beta_prior(stats: GridStats) -> tuple[Float[Array, ""], Float[Array,
     return e * k, (1.0 - e) * k
 
 
-@eqx.filter_jit
+@_checks.checked_jit
 def _extract_rays(rays: RayBatch, spec: GridSpec, cfg: PoleConfig) -> tuple[_RawPoles, Array]:
     stats = accumulate(
         spec, rays, chunk_size=cfg.chunk_size, backend=cfg.backend, threads=cfg.threads

@@ -37,6 +37,7 @@ import jaxlie
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
+from .. import _checks
 from ..rays import is_concrete
 from ._particles import ParticleState, estimate
 from ._poses import Pose, dof, take, to_vector
@@ -346,7 +347,7 @@ class ParticleFilter(eqx.Module):
         dtype = state.log_weights.dtype
         if not hasattr(self.motion, "propose"):
             particles = self.motion(state.particles, control, key=key)
-            ll = jax.lax.cond(
+            ll = _checks.cond(
                 update,
                 lambda: jnp.asarray(self.measurement(particles, z), dtype),
                 lambda: jnp.zeros_like(state.log_weights),
@@ -363,7 +364,7 @@ class ParticleFilter(eqx.Module):
             p = jax.tree.map(lambda x, y: x.astype(y.dtype), p, state.particles)
             return p, jnp.zeros_like(state.log_weights)
 
-        return jax.lax.cond(update, proposed, prior)
+        return _checks.cond(update, proposed, prior)
 
     def step(
         self, state: ParticleState, control, z, update: bool | Bool[Array, ""] = True
@@ -576,7 +577,7 @@ class ParticleFilter(eqx.Module):
         final, infos = self._run_padded(state, *padded, np.int32(n_steps))
         return final, jax.tree.map(lambda x: x[:n_steps], infos)
 
-    @eqx.filter_jit
+    @_checks.checked_jit
     def _run_padded(self, state: ParticleState, controls, measurements, updates, n_live):
         """The scan of :meth:`run` over the padded steps; steps ``>= n_live`` (traced) run
         without measurement update and leave the state as it was."""
@@ -588,9 +589,9 @@ class ParticleFilter(eqx.Module):
             new, info = self.step(s, c, z, u & keep)
             return _select_tree(keep, new, s), info
 
-        return jax.lax.scan(body, state, (controls, measurements, updates, live))
+        return _checks.scan(body, state, (controls, measurements, updates, live))
 
-    @eqx.filter_jit
+    @_checks.checked_jit
     def _run(self, state: ParticleState, controls, measurements, updates=None):
         """The unpadded scan (one program per ``T``): the reference :meth:`run` matches."""
         n_steps = jax.tree.leaves(controls)[0].shape[0]
@@ -601,4 +602,4 @@ class ParticleFilter(eqx.Module):
             c, z, u = xs
             return self.step(s, c, z, u)
 
-        return jax.lax.scan(body, state, (controls, measurements, updates))
+        return _checks.scan(body, state, (controls, measurements, updates))

@@ -35,6 +35,7 @@ import jaxlie
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int, PRNGKeyArray
 
+from .._checks import check
 from ..raytrace import GridSpec
 from ._particles import ParticleState, _check_n
 from ._poses import from_vector
@@ -229,7 +230,7 @@ def lattice_scores(
         return jnp.asarray(scan_model(from_vector(p), ranges))
 
     s = jax.lax.map(one, hyp.reshape(n_chunks, chunk_size, 3)).reshape(-1)[:m]
-    return eqx.error_if(s, jnp.any(jnp.isnan(s)), "scan_model returned NaN on the lattice")
+    return check(s, jnp.any(jnp.isnan(s)), "scan_model returned NaN on the lattice")
 
 
 def _heading_bin(theta, n_headings: int):
@@ -336,11 +337,11 @@ def _init_from_scan(n, n_uni, frac, lattice, scan_model, ranges, key, scores):
     dtype = lattice.positions.dtype
     res = spec.resolution
     k_cat, k_cell, k_pos, k_head, k_uc, k_up, k_uh, k_next = jax.random.split(key, 8)
-    scores = eqx.error_if(scores, jnp.any(jnp.isnan(scores)), "scores contain NaN").astype(dtype)
+    scores = check(scores, jnp.any(jnp.isnan(scores)), "scores contain NaN").astype(dtype)
     h_count = lattice.n_headings
     log_mass = jnp.repeat(jnp.log(lattice.counts.astype(dtype)), h_count) + scores
     lse = jax.nn.logsumexp(log_mass)
-    lse = eqx.error_if(lse, ~jnp.isfinite(lse), "no lattice hypothesis has a finite score")
+    lse = check(lse, ~jnp.isfinite(lse), "no lattice hypothesis has a finite score")
     log_probs = log_mass - lse
 
     def in_cells(cell, k_in):
@@ -379,6 +380,6 @@ def _init_from_scan(n, n_uni, frac, lattice, scan_model, ranges, key, scores):
     log_q = proposal_log_density(lattice, log_probs, v, frac)
     log_prior = -jnp.log(lattice.n_free * res * res) - math.log(2.0 * math.pi)
     ll = jnp.asarray(scan_model(particles, ranges)).astype(dtype)
-    ll = eqx.error_if(ll, jnp.any(jnp.isnan(ll)), "scan_model returned NaN at the particles")
+    ll = check(ll, jnp.any(jnp.isnan(ll)), "scan_model returned NaN at the particles")
     log_w = normalize_log_weights(ll + log_prior - log_q)
     return ParticleState(particles, log_w, k_next)

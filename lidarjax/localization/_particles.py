@@ -14,6 +14,7 @@ import jaxlie
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int, PRNGKeyArray
 
+from .._checks import check
 from ..rays import is_concrete
 from ..raytrace import GridSpec
 from ._poses import Pose, dof, from_vector, take, weighted_mean
@@ -171,7 +172,7 @@ def _sample_free(n: int, spec, counts, k_c, k_u, k_h) -> Float[Array, "n 3"]:
     """``[n 3]`` pose vectors uniform over the free cells (``counts`` from
     :func:`_free_cell_counts`) with uniform headings."""
     total = counts[-1]
-    total = eqx.error_if(total, total <= 0, "free has no True cell to sample from")
+    total = check(total, total <= 0, "free has no True cell to sample from")
     # the r-th free cell (r uniform in 0..total-1) is the first index with count > r
     r = jax.random.randint(k_c, (n,), 0, jnp.maximum(total, 1))
     flat = jnp.searchsorted(counts, r, side="right")

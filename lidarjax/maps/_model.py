@@ -29,7 +29,6 @@ The five models of the dissertation implement it: :class:`~lidarjax.maps.DecayRa
 from __future__ import annotations
 
 import abc
-import functools
 from typing import NamedTuple
 
 import equinox as eqx
@@ -38,8 +37,11 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
+from .. import _checks
+from .._checks import check
 from ..rays import RayBatch, is_concrete
-from ..raytrace import CellTerm, GridSpec, RayFold, fold_traversal, max_cells_for, traverse
+from ..raytrace import CellTerm, GridSpec, RayFold, fold_traversal, max_cells_for
+from ..raytrace._grid import _traverse_unchecked, check_rays
 
 __all__ = [
     "AbstractGridModel",
@@ -138,16 +140,14 @@ def default_max_cells(spec: GridSpec, length_m, max_cells: int | None) -> int:
 
 def check_complete(out: Array, complete: Bool[Array, "*batch"]) -> Array:
     """Attach a run-time check that no walk ran out of its ``max_cells`` budget."""
-    return eqx.error_if(
-        out, ~complete, "max_cells is too small for some rays; pass a larger max_cells"
-    )
+    return check(out, ~complete, "max_cells is too small for some rays; pass a larger max_cells")
 
 
-@functools.partial(jax.jit, static_argnames=("max_cells",))
+@_checks.checked_jit
 def _walk_log_likelihood(model: AbstractGridModel, rays: RayBatch, max_cells: int):
     flat = rays.flatten()
-    w = model.walk(flat)
-    tr = jax.vmap(lambda o, d, n: traverse(model.spec, o, d, n, max_cells))(*w)
+    w = GridWalk(*check_rays(model.spec, *model.walk(flat), "traverse"))  # outside the vmap
+    tr = jax.vmap(lambda o, d, n: _traverse_unchecked(model.spec, o, d, n, max_cells))(*w)
     fold = fold_traversal(tr, model.cell_term(flat))
     out = model.finish(fold, flat, w)
     return check_complete(out, fold.complete).reshape(rays.shape)

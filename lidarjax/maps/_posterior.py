@@ -27,11 +27,11 @@ from __future__ import annotations
 import math
 from typing import Literal
 
-import equinox as eqx
 import jax.numpy as jnp
 from jax.scipy.special import betainc
 from jaxtyping import Array, ArrayLike, Float
 
+from .._checks import check
 from .._math import log1mexp
 from ..rays import HIT, SUB, SUP, RayBatch, check_finite_nonnegative, is_concrete, reject_where
 from ..raytrace import (
@@ -74,7 +74,7 @@ def _check_param(x, name: str, *, allow_zero: bool) -> Array:
         return jnp.asarray(v, jnp.result_type(float))
     x = jnp.asarray(x, jnp.result_type(float))
     bad = ~jnp.isfinite(x) | ((x < 0) if allow_zero else (x <= 0))
-    return eqx.error_if(x, bad, f"{name} must be finite and {bound}")
+    return check(x, bad, f"{name} must be finite and {bound}")
 
 
 def _check_stats(stats) -> GridStats:
@@ -142,7 +142,7 @@ def _check_matched(alpha, beta, name: str, detail: str) -> tuple[Array, Array]:
         if bool(bad):
             raise ValueError(f"{msg}; got alpha={float(alpha)}, beta={float(beta)}")
         return alpha, beta
-    alpha = eqx.error_if(alpha, bad, msg)
+    alpha = check(alpha, bad, msg)
     return alpha, beta
 
 
@@ -566,7 +566,7 @@ def _checked_ab(posterior_map):
         return a, b
     b_ok = b >= 0 if isinstance(posterior_map, GammaPosteriorMap) else b > 0
     bad = ~(jnp.isfinite(a) & jnp.isfinite(b) & (a > 0) & b_ok)
-    a = eqx.error_if(
+    a = check(
         a,
         bad,
         f"{type(posterior_map).__name__}: hits, misses/lengths, alpha and beta must be "
@@ -640,7 +640,7 @@ def occupancy(beta_map: BetaPosteriorMap, mu_o: float | ArrayLike = 0.2) -> Floa
         if not (0.0 <= m <= 1.0):
             raise ValueError(f"mu_o must lie in [0, 1], got {m}")
     else:
-        mu_o = eqx.error_if(mu_o, (mu_o < 0) | (mu_o > 1), "mu_o must lie in [0, 1]")
+        mu_o = check(mu_o, (mu_o < 0) | (mu_o > 1), "mu_o must lie in [0, 1]")
     a, b = beta_map.a, beta_map.b
     x = jnp.asarray(1.0 - jnp.asarray(mu_o, a.dtype), a.dtype)
     return jnp.clip(betainc(b, a, jnp.broadcast_to(x, a.shape)), 0.0, 1.0)

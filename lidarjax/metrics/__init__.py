@@ -19,7 +19,10 @@ from ._segmentation import HooverScores as HooverScores
 from ._segmentation import hoover_scores as hoover_scores
 from ._segmentation import k_value as k_value
 from ._segmentation import segmentation_rmse as segmentation_rmse
+from ._trajectory import AbsoluteTrajectoryError as AbsoluteTrajectoryError
 from ._trajectory import TrajectoryErrors as TrajectoryErrors
+from ._trajectory import absolute_trajectory_error as absolute_trajectory_error
+from ._trajectory import align_se2 as align_se2
 from ._trajectory import interpolate_at_arclength as interpolate_at_arclength
 from ._trajectory import trajectory_errors as trajectory_errors
 
@@ -42,5 +45,8 @@ __all__ = [
     "segmentation_rmse",
     "TrajectoryErrors",
     "trajectory_errors",
+    "AbsoluteTrajectoryError",
+    "absolute_trajectory_error",
+    "align_se2",
     "interpolate_at_arclength",
 ]

@@ -14,7 +14,6 @@ from __future__ import annotations
 import math
 from typing import Literal
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jaxlie
@@ -22,6 +21,7 @@ import numpy as np
 from jax.scipy.special import logsumexp
 from jaxtyping import Array, ArrayLike, Bool, Float
 
+from .._checks import check
 from ..rays import is_concrete
 
 __all__ = [
@@ -103,7 +103,7 @@ def map_rmse(
         if int(n) == 0:
             raise ValueError("mask selects no cells")
     else:
-        n = eqx.error_if(n, n == 0, "mask selects no cells")
+        n = check(n, n == 0, "mask selects no cells")
     diff = jnp.where(mask, a - b, 0.0)
     return jnp.sqrt(jnp.sum(diff * diff) / jnp.maximum(n, 1))
 

@@ -31,7 +31,14 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["TrajectoryErrors", "interpolate_at_arclength", "trajectory_errors"]
+__all__ = [
+    "AbsoluteTrajectoryError",
+    "TrajectoryErrors",
+    "absolute_trajectory_error",
+    "align_se2",
+    "interpolate_at_arclength",
+    "trajectory_errors",
+]
 
 _COUNT_RTOL = 1e-9  # L / spacing within this relative tolerance of an integer counts as one
 
@@ -283,4 +290,131 @@ def trajectory_errors(
         rmse_ang_deg=float(np.sqrt(np.mean(ang**2))),
         max_pos_m=float(dist.max()),
         n=int(i.shape[0]),
+    )
+
+
+@dataclass(frozen=True)
+class AbsoluteTrajectoryError:
+    """Absolute trajectory error per pose after alignment (what ``evo_ape`` reports as
+    APE w.r.t. the translation part).
+
+    Attributes:
+        rmse_m: Root mean square position error (m).
+        mean_m: Mean position error (m).
+        median_m: Median position error (m).
+        max_m: Largest position error (m).
+        n: Number of poses used.
+        rotation_rad: Rotation of the alignment applied to the estimate (rad).
+        translation_m: ``[2]`` translation of the alignment (m).
+        errors_m: ``[N]`` position error per row (m; NaN where not used).
+        aligned: ``[N 3]`` the aligned estimate ``(x, y, yaw)``.
+    """
+
+    rmse_m: float
+    mean_m: float
+    median_m: float
+    max_m: float
+    n: int
+    rotation_rad: float
+    translation_m: np.ndarray
+    errors_m: np.ndarray
+    aligned: np.ndarray
+
+
+def align_se2(
+    estimate_xy_yaw: np.ndarray, truth_xy_yaw: np.ndarray, *, valid: np.ndarray | None = None
+) -> tuple[float, np.ndarray]:
+    """The rigid planar motion ``(theta, t)`` that maps the estimate's positions onto the
+    ground truth's in the least-squares sense (Kabsch / Umeyama without scale, by SVD of the
+    2 x 2 cross-covariance; reflections excluded). On planar trajectories this is the SE(3)
+    alignment ``evo_ape --align`` computes.
+
+    Args:
+        estimate_xy_yaw: ``[N 3]`` estimated poses ``(x [m], y [m], yaw [rad])``.
+        truth_xy_yaw: ``[N 3]`` ground truth, row ``i`` at the same time as the estimate's.
+        valid: optional ``[N]`` bool, rows to use (default: rows finite in both).
+
+    Returns:
+        ``(theta [rad], t [2] m)``: ``aligned_xy = R(theta) @ est_xy + t``.
+
+    Raises:
+        ValueError: bad shapes, or fewer than 2 usable rows.
+    """
+    est = _check_poses("estimate_xy_yaw", estimate_xy_yaw)
+    gt = _check_poses("truth_xy_yaw", truth_xy_yaw)
+    if est.shape != gt.shape:
+        raise ValueError(
+            f"estimate_xy_yaw and truth_xy_yaw must have the same shape, got {est.shape} "
+            f"and {gt.shape}"
+        )
+    use = np.isfinite(est[:, :2]).all(1) & np.isfinite(gt[:, :2]).all(1)
+    if valid is not None:
+        valid = np.asarray(valid, bool)
+        if valid.shape != (est.shape[0],):
+            raise ValueError(f"valid must have shape [{est.shape[0]}], got {valid.shape}")
+        use &= valid
+    if use.sum() < 2:
+        raise ValueError(f"need at least 2 finite, valid rows to align, got {int(use.sum())}")
+    e, g = est[use, :2], gt[use, :2]
+    me, mg = e.mean(0), g.mean(0)
+    u, _, vt = np.linalg.svd((g - mg).T @ (e - me))
+    d = np.sign(np.linalg.det(u @ vt)) or 1.0
+    r = u @ np.diag([1.0, d]) @ vt
+    theta = float(np.arctan2(r[1, 0], r[0, 0]))
+    return theta, mg - r @ me
+
+
+def absolute_trajectory_error(
+    estimate_xy_yaw: np.ndarray,
+    truth_xy_yaw: np.ndarray,
+    *,
+    align: bool = True,
+    valid: np.ndarray | None = None,
+) -> AbsoluteTrajectoryError:
+    """Absolute trajectory error (ATE) per pose: the position errors of the estimate after
+    an optional rigid alignment onto the ground truth (:func:`align_se2`), every row
+    counted (unlike :func:`trajectory_errors`, which samples by distance travelled).
+    ``evo_ape tum gt est --align`` gives the same RMSE on files written by
+    :func:`lidarjax.datasets.write_tum` (tested).
+
+    Args:
+        estimate_xy_yaw: ``[N 3]`` estimated poses ``(x [m], y [m], yaw [rad])``.
+        truth_xy_yaw: ``[N 3]`` ground truth at the same times.
+        align: align first (default) or compare as given.
+        valid: optional ``[N]`` bool, rows to use (default: rows finite in both).
+
+    Returns:
+        An :class:`AbsoluteTrajectoryError`.
+    """
+    est = _check_poses("estimate_xy_yaw", estimate_xy_yaw)
+    gt = _check_poses("truth_xy_yaw", truth_xy_yaw)
+    if est.shape != gt.shape:
+        raise ValueError(
+            f"estimate_xy_yaw and truth_xy_yaw must have the same shape, got {est.shape} "
+            f"and {gt.shape}"
+        )
+    use = np.isfinite(est[:, :2]).all(1) & np.isfinite(gt[:, :2]).all(1)
+    if valid is not None:
+        valid = np.asarray(valid, bool)
+        if valid.shape != (est.shape[0],):
+            raise ValueError(f"valid must have shape [{est.shape[0]}], got {valid.shape}")
+        use &= valid
+    if not use.any():
+        raise ValueError("no row is finite and valid in both trajectories")
+    theta, t = align_se2(est, gt, valid=use) if align else (0.0, np.zeros(2))
+    c, s_ = np.cos(theta), np.sin(theta)
+    xy = est[:, :2] @ np.array([[c, s_], [-s_, c]]) + t
+    aligned = np.column_stack([xy, _wrap(est[:, 2] + theta)])
+    err = np.where(use, np.linalg.norm(xy - gt[:, :2], axis=1), np.nan)
+    e = err[use]
+    return AbsoluteTrajectoryError(
+        rmse_m=float(np.sqrt(np.mean(e**2))),
+        mean_m=float(np.mean(e)),
+        median_m=float(np.median(e)),
+        max_m=float(np.max(e)),
+        n=int(use.sum()),
+        rotation_rad=theta,
+        translation_m=np.asarray(t, np.float64),
+        errors_m=err,
+        aligned=aligned,
     )

@@ -40,6 +40,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
+from .. import _checks
+from .._checks import check
 from ..rays import HIT, SUB, SUP, RayBatch, is_concrete
 from . import _native
 from ._primitives import clip_to_box, n_chunks_for, pad_to_chunks, slabs
@@ -98,7 +100,7 @@ class GridSpec(eqx.Module):
             if not np.all(np.isfinite(np.asarray(origin))):
                 raise ValueError(f"origin must be finite, got {np.asarray(origin)}")
         else:
-            origin = eqx.error_if(origin, ~jnp.all(jnp.isfinite(origin)), "origin must be finite")
+            origin = check(origin, ~jnp.all(jnp.isfinite(origin)), "origin must be finite")
         resolution = jnp.asarray(resolution, dtype=origin.dtype)
         if resolution.shape != ():
             raise ValueError(f"resolution must be a scalar, got shape {resolution.shape}")
@@ -107,7 +109,7 @@ class GridSpec(eqx.Module):
             if not (np.isfinite(res) and res > 0):
                 raise ValueError(f"resolution must be a positive finite number, got {res}")
         else:
-            resolution = eqx.error_if(
+            resolution = check(
                 resolution,
                 ~(jnp.isfinite(resolution) & (resolution > 0)),
                 "resolution must be a positive finite number",
@@ -373,6 +375,12 @@ def traverse(
     origin, direction, length = check_rays(
         spec, origin, jnp.asarray(direction), jnp.asarray(length), name="traverse"
     )
+    return _traverse_unchecked(spec, origin, direction, length, max_cells)
+
+
+def _traverse_unchecked(spec: GridSpec, origin, direction, length, max_cells: int) -> Traversal:
+    """:func:`traverse` without the input checks: batched callers check the whole batch
+    once (:func:`check_rays`, outside their ``vmap``) and ``vmap`` this."""
     ray, state = _setup(spec, origin, direction, length)
 
     def body(s, _):
@@ -487,11 +495,11 @@ def _fold_sorted(spec: GridSpec, origins, directions, lengths, term, chunk: int)
         acc = _check_walk_ended(acc, final.active)
         return acc, last_cell, last_len, grid_len, any_valid, ray.t_start, ray.t_end
 
-    outs = jax.lax.map(one_chunk, (prep(origins), prep(directions), prep(lengths)))
+    outs = _checks.map(one_chunk, (prep(origins), prep(directions), prep(lengths)))
     return [x.reshape(n_chunks * chunk, *x.shape[2:])[:n] for x in outs]
 
 
-@eqx.filter_jit
+@_checks.checked_jit
 def fold_rays(
     spec: GridSpec,
     origins: Float[Array, "n d"],
@@ -710,12 +718,11 @@ def traverse_rays(spec: GridSpec, rays: RayBatch, max_cells: int | None = None) 
     return _traverse_rays(spec, rays, max_cells=max_cells)
 
 
-@functools.partial(jax.jit, static_argnames=("max_cells",))
+@_checks.checked_jit
 def _traverse_rays(spec: GridSpec, rays: RayBatch, max_cells: int) -> Traversal:
     flat = rays.flatten()
-    tr = jax.vmap(lambda o, d, length: traverse(spec, o, d, length, max_cells))(
-        flat.origins, flat.directions, flat.mapping_lengths()
-    )
+    o, d, n = check_rays(spec, flat.origins, flat.directions, flat.mapping_lengths(), "traverse")
+    tr = jax.vmap(lambda o, d, length: _traverse_unchecked(spec, o, d, length, max_cells))(o, d, n)
     return jax.tree.map(lambda x: x.reshape(*rays.shape, *x.shape[1:]), tr)
 
 
@@ -740,7 +747,7 @@ def walk_bound(spec: GridSpec) -> int:
 def _check_walk_ended(x, active):
     """Fail loudly (``eqx.error_if``) if any walk hit :func:`walk_bound` still active,
     which only non-finite inputs can cause; the result would be wrong otherwise."""
-    return eqx.error_if(
+    return check(
         x,
         jnp.any(active),
         "ray walk exceeded the grid's cell bound (non-finite ray origin, direction or "
@@ -754,17 +761,17 @@ def check_rays(spec: GridSpec, origins, directions, lengths, name: str = "rays")
     grid border), the grid origin finite and its resolution positive and finite. Returns
     ``(origins, directions, lengths)`` carrying the checks (use the returned values)."""
     bad_o = ~jnp.all(jnp.isfinite(origins))
-    origins = eqx.error_if(origins, bad_o, f"{name}: ray origins must be finite (NaN or inf pose?)")
+    origins = check(origins, bad_o, f"{name}: ray origins must be finite (NaN or inf pose?)")
     bad_d = ~jnp.all(jnp.isfinite(directions))
-    directions = eqx.error_if(
+    directions = check(
         directions, bad_d, f"{name}: ray directions must be finite (NaN or inf heading/azimuth?)"
     )
     bad_l = jnp.any(jnp.isnan(lengths) | (lengths < 0))
-    lengths = eqx.error_if(lengths, bad_l, f"{name}: ray lengths must be >= 0 and not NaN")
+    lengths = check(lengths, bad_l, f"{name}: ray lengths must be >= 0 and not NaN")
     bad_g = ~(jnp.all(jnp.isfinite(spec.origin)) & jnp.isfinite(spec.resolution)) | ~(
         spec.resolution > 0
     )
-    origins = eqx.error_if(
+    origins = check(
         origins, bad_g, "spec: grid origin must be finite and resolution positive and finite"
     )
     return origins, directions, lengths
@@ -840,12 +847,12 @@ def _walk_block(spec: GridSpec, origins, directions, lengths, ray_hits, use, chu
         hits = hits.at[hit_flat].add(1, mode="promise_in_bounds")
         return (rv, hits), None
 
-    (rv, hits), _ = jax.lax.scan(chunk_body, acc0, (o_c, d_c, l_c, h_c, u_c))
+    (rv, hits), _ = _checks.scan(chunk_body, acc0, (o_c, d_c, l_c, h_c, u_c))
     visits = jnp.round(rv.imag[:n_cells]).astype(jnp.int32)
     return rv.real[:n_cells], visits, hits[:n_cells]
 
 
-@functools.partial(jax.jit, static_argnames=("chunk_size", "block", "sub_as_hit"))
+@_checks.checked_jit
 def _accumulate(
     spec: GridSpec,
     origins,
@@ -882,7 +889,7 @@ def _accumulate(
 
     n_cells = spec.n_cells
     init = (jnp.zeros(n_cells, dtype), jnp.zeros(n_cells, jnp.int32), jnp.zeros(n_cells, jnp.int32))
-    (r, v, h), _ = jax.lax.scan(block_body, init, jnp.arange(n_blocks))
+    (r, v, h), _ = _checks.scan(block_body, init, jnp.arange(n_blocks))
     shape = spec.shape
     return r.reshape(shape), (v - h).reshape(shape), h.reshape(shape)
 

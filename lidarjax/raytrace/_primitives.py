@@ -17,6 +17,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
+from .. import _checks
+
 
 def _moving(x: Array, eps: float) -> Array:
     """``x != 0`` (``eps == 0``) or ``|x| >= eps``: the component counts as non-zero."""
@@ -490,7 +492,7 @@ def map_chunked(fn, xs, chunk_size: int, fill=0):
     chunked = tree.unflatten(
         [pad_to_chunks(a, chunk_size, f) for a, f in zip(leaves, fills, strict=True)]
     )
-    out = jax.lax.map(fn, chunked)
+    out = _checks.map(fn, chunked)
     return jax.tree.map(lambda a: unchunk(a, n), out)
 
 

@@ -5,12 +5,12 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-import equinox as eqx
 import jax.numpy as jnp
 import jaxlie
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from .. import _checks
 from ..maps import AbstractGridModel, grid_log_likelihood
 from ..rays import from_scan, is_concrete
 from ..raytrace import map_chunked, max_cells_for
@@ -39,7 +39,7 @@ def _pose_params(poses) -> Float[Array, "p 4"]:
     return jaxlie.SE2.from_xy_theta(p[:, 0], p[:, 1], p[:, 2]).parameters()
 
 
-@eqx.filter_jit
+@_checks.checked_jit
 def _at_poses(model_fn, model, az, ranges, params, r_min, r_max, chunk_size, max_cells):
     chunk = min(chunk_size, params.shape[0])
 

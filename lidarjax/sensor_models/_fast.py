@@ -11,15 +11,15 @@ as the differentiable path, so both agree to round-off.
 
 from __future__ import annotations
 
-import equinox as eqx
 from jaxtyping import Array, Float
 
+from .. import _checks
 from ..maps import AbstractGridModel
 from ..rays import RayBatch
 from ..raytrace import check_backend, fold_rays
 
 
-@eqx.filter_jit
+@_checks.checked_jit
 def _fast(model, rays: RayBatch, chunk_size: int, backend: str, threads: int | None):
     flat = rays.flatten()
     walk = model.walk(flat)

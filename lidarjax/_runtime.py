@@ -108,9 +108,10 @@ def enable_compilation_cache(
     process finds the executable on disk under a key of the program, its input shapes,
     the jaxlib version and the XLA flags, so an entry is never reused for something else.
     Tracing and lowering still happen in every process; only XLA's compilation is saved.
-    JAX never writes programs with host callbacks (each traced ``eqx.error_if`` check is
-    one, as is ``jax.debug.print``), so those compile in every process
-    (``benchmarks/first_call.py`` lists them).
+    JAX never writes programs with host callbacks (``jax.debug.print``, a traced
+    ``eqx.error_if``), so those compile in every process; the library's own programs
+    return their run-time checks as outputs instead (``lidarjax._checks``), so they are
+    cached (``benchmarks/first_call.py`` lists any program that is not).
 
     Called by the experiments and the test suite; never by importing ``lidarjax``. Safe to
     call at any time: JAX opens the cache at the first compilation after the folder is set

@@ -7,12 +7,19 @@ Every experiment calls :func:`setup` before its first JAX computation, directly 
 :func:`output_dir` (the first thing each Hydra entry point does after validating its
 config), so a second run loads its compiled programs instead of compiling them again.
 
+Sweeps (``python experiments/<name>.py -m ...``, any Hydra launcher): every job writes into
+``outputs/sweeps/<name>/<override string>`` (the ``hydra.sweep`` keys of each config), and
+:func:`completed_job`, called by the entry points right after :func:`output_dir`, skips a
+job whose folder already holds the complete ``results.json`` of an earlier run of it, so a
+rerun of an interrupted sweep only computes the missing jobs. A single run always computes.
+
 Library code never imports this module; it knows Hydra configs.
 """
 
 from __future__ import annotations
 
 import json
+import logging
 import math
 import os
 from pathlib import Path
@@ -22,6 +29,7 @@ import jax.numpy as jnp
 import jaxlie
 import numpy as np
 from hydra.core.hydra_config import HydraConfig
+from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
 import lidarjax
@@ -31,11 +39,15 @@ from lidarjax.raytrace import GridSpec, GridStats, accumulate
 
 __all__ = [
     "GRID_MODELS",
+    "INCOMPLETE",
+    "completed_job",
     "covering_grid",
     "even_odd_scans",
     "fmt",
     "grid_model",
+    "is_complete",
     "mapping_stats",
+    "mark_complete",
     "output_dir",
     "run_info",
     "save_figure",
@@ -49,6 +61,11 @@ GRID_MODELS = ("dec", "ref", "end", "fmp_dec", "fmp_ref")
 posteriors of the decay-rate (Gamma) and reflection (Beta) models (ch. 8)."""
 
 MISSING = "–"  # a table cell without a value
+
+INCOMPLETE = ".incomplete"
+"""Marker file of a sweep job that started and has not finished (see :func:`completed_job`)."""
+
+log = logging.getLogger(__name__)
 
 
 # ---------------------------------------------------------------- process setup
@@ -102,8 +119,12 @@ def write_results(
     markdown: str | None = None,
     cfg: DictConfig | None = None,
     allow_nan: bool = True,
+    partial: bool = False,
 ) -> None:
-    """Write ``results.json``, ``results.md`` and ``config.yaml`` (each when given) to ``out``.
+    """Write ``results.md``, ``config.yaml`` and ``results.json`` (each when given) to ``out``.
+
+    ``results.json`` is written last and atomically (a temporary file renamed onto it), so
+    it is never half written.
 
     Args:
         out: the output folder.
@@ -111,14 +132,70 @@ def write_results(
         markdown: the Markdown tables.
         cfg: the resolved experiment config, saved as ``config.yaml``.
         allow_nan: ``False`` refuses NaN / inf in ``results`` (strict JSON).
+        partial: ``True`` for a snapshot of a run still going (results after every log);
+            ``False`` (default) also marks a sweep job complete (:func:`mark_complete`).
     """
-    if results is not None:
-        text = json.dumps(results, indent=2, default=_plain, allow_nan=allow_nan)
-        (out / "results.json").write_text(text)
     if markdown is not None:
         (out / "results.md").write_text(markdown)
     if cfg is not None:
         (out / "config.yaml").write_text(OmegaConf.to_yaml(cfg))
+    if results is not None:
+        text = json.dumps(results, indent=2, default=_plain, allow_nan=allow_nan)
+        tmp = out / ".results.json.tmp"
+        tmp.write_text(text)
+        os.replace(tmp, out / "results.json")
+    if not partial:
+        mark_complete(out)
+
+
+# ---------------------------------------------------------------- sweeps: resuming jobs
+def is_complete(out: Path) -> bool:
+    """Whether the folder ``out`` holds the results of a finished run: a ``results.json``
+    that parses, and no :data:`INCOMPLETE` marker (which :func:`completed_job` puts into a
+    sweep job's folder when the job starts and :func:`mark_complete` removes at its end)."""
+    out = Path(out)
+    if (out / INCOMPLETE).exists():
+        return False
+    try:
+        json.loads((out / "results.json").read_text())
+    except (OSError, ValueError):
+        return False
+    return True
+
+
+def completed_job(out: Path) -> dict | None:
+    """Resume a sweep: the stored results of this job if an earlier run of it finished.
+
+    In a Hydra multirun (``-m``): when the job's folder ``out`` is complete
+    (:func:`is_complete`), logs one line saying the job is skipped and returns the stored
+    ``results.json``; the entry point returns it at once, without recomputing. Otherwise
+    (no ``results.json``, or an interrupted run) marks ``out`` as :data:`INCOMPLETE` and
+    returns ``None``: the job runs, and its final :func:`write_results` (or
+    :func:`mark_complete`) marks it complete. In a single run: ``None``, nothing written
+    (a single run always recomputes).
+
+    Usage, right after :func:`output_dir`::
+
+        if (done := completed_job(out)) is not None:
+            return done
+    """
+    if HydraConfig.get().mode != RunMode.MULTIRUN:
+        return None
+    out = Path(out)
+    if is_complete(out):
+        log.info(f"skipping job {out.name!r}: {out / 'results.json'} is complete "
+                 "(delete it to run the job again)")  # fmt: skip
+        return json.loads((out / "results.json").read_text())
+    (out / INCOMPLETE).write_text(
+        "this job started and has not finished (experiments/_common.py)\n"
+    )
+    return None
+
+
+def mark_complete(out: Path) -> None:
+    """Mark the sweep job in ``out`` as finished (removes the :data:`INCOMPLETE` marker;
+    no-op outside sweeps). For entry points whose last :func:`write_results` is ``partial``."""
+    (Path(out) / INCOMPLETE).unlink(missing_ok=True)
 
 
 def save_figure(fig, path: Path, dpi: int = 120) -> None:

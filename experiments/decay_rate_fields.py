@@ -46,7 +46,7 @@ matplotlib.use("Agg")
 import jax.numpy as jnp  # noqa: E402
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
-from _common import output_dir, write_results  # noqa: E402
+from _common import completed_job, mark_complete, output_dir, write_results  # noqa: E402
 from _schemas import validate  # noqa: E402
 from custom_field import RBFField, held_out, patch_rays, rbf_field_like  # noqa: E402
 from omegaconf import DictConfig, OmegaConf  # noqa: E402
@@ -255,6 +255,8 @@ def main(cfg: DictConfig) -> dict:
     validate(cfg, "decay_rate_fields")
     jax.config.update("jax_enable_x64", bool(cfg.x64))
     out = output_dir()
+    if (done := completed_job(out)) is not None:  # a sweep job that already finished
+        return done
     t0 = time.perf_counter()
     rows, figs, summ, results = [], {}, {}, {}
     for name in (bar := tqdm(list(cfg.logs), desc="logs", unit="log")):
@@ -270,11 +272,12 @@ def main(cfg: DictConfig) -> dict:
             "summary": summ,
             "total_s": time.perf_counter() - t0,
         }
-        write_results(out, results=results)
+        write_results(out, results=results, partial=True)
     total = time.perf_counter() - t0
     md = markdown(rows, summ, cfg, total)
-    write_results(out, markdown=md, cfg=cfg)
+    write_results(out, markdown=md, cfg=cfg, partial=True)
     plot_figures(figs, summ, cfg, out)
+    mark_complete(out)  # a sweep job: every log and figure written
     print(md)
     return results
 

@@ -41,10 +41,12 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from _common import (  # noqa: E402
+    completed_job,
     even_odd_scans,
     fmt,
     grid_model,
     mapping_stats,
+    mark_complete,
     output_dir,
     run_info,
     write_results,
@@ -371,6 +373,8 @@ def plot(curves: dict, gts: dict, out: Path) -> None:
 def main(cfg: DictConfig) -> None:
     validate(cfg, "mcl")
     out = output_dir()
+    if (done := completed_job(out)) is not None:  # a sweep job that already finished
+        return done
     models = list(cfg.models)
     unknown = set(models) - set(NAMES)
     if unknown:
@@ -392,6 +396,7 @@ def main(cfg: DictConfig) -> None:
             + f" ({res['seconds']:.0f} s)"
         )
         write_outputs(out, cfg, models, results, curves, gts, time.perf_counter() - t0)
+    mark_complete(out)  # a sweep job: results.json holds every log
     print(write_tables(results, models))
 
 
@@ -417,7 +422,7 @@ def write_outputs(out: Path, cfg, models, results, curves, gts, runtime_s: float
             )
             for m in ch7
         }
-    write_results(out, results=summary, markdown=write_tables(results, models))
+    write_results(out, results=summary, markdown=write_tables(results, models), partial=True)
     plot(curves, gts, out)
 
 

@@ -54,7 +54,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
-from _common import output_dir, write_results  # noqa: E402
+from _common import completed_job, output_dir, write_results  # noqa: E402
 from _schemas import log_name, validate  # noqa: E402
 from omegaconf import DictConfig, OmegaConf  # noqa: E402
 from scipy.optimize import minimize  # noqa: E402
@@ -654,6 +654,8 @@ def main(cfg: DictConfig) -> None:
     validate(cfg, "polylines")
     jax.config.update("jax_enable_x64", bool(cfg.x64))
     out = output_dir()
+    if (done := completed_job(out)) is not None:  # a sweep job that already finished
+        return done
     out.mkdir(parents=True, exist_ok=True)
     unknown = set(cfg.methods) - set(METHODS)
     if unknown:
@@ -728,8 +730,8 @@ def main(cfg: DictConfig) -> None:
         summary["per_log_vs_paper"] = per_log_vs_paper(summary)
     summary["runtime_s"] = time.perf_counter() - t0
     md = tables(summary)
-    write_results(out, results=summary, markdown=md, cfg=cfg)
     (out / "per_scan.json").write_text(json.dumps(per_scan))
+    write_results(out, results=summary, markdown=md, cfg=cfg)
     print(md)
 
 

@@ -73,7 +73,7 @@ import hydra
 import jax
 import jax.numpy as jnp
 import numpy as np
-from _common import output_dir, write_results
+from _common import completed_job, output_dir, write_results
 from _schemas import validate
 from jax import lax
 from jax.scipy.special import betainc
@@ -383,6 +383,8 @@ def _markdown(results: dict) -> str:
 def main(cfg: DictConfig) -> dict:
     _validate(cfg)
     out = output_dir()
+    if (done := completed_job(out)) is not None:  # a sweep job that already finished
+        return done
     t_start = time.perf_counter()
     root = jax.random.key(int(cfg.seed))
     runs = int(cfg.runs)

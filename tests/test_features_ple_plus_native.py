@@ -186,6 +186,7 @@ def test_native_matches_the_jax_path_when_both_converge(rounds, restarts):
     _converged(SCANS, (10, 30, 50), rounds, restarts)
 
 
+@pytest.mark.slow  # > 10 s on a loaded machine: make test-slow / CI
 @native
 def test_native_matches_the_jax_path_when_both_converge_quick():
     _converged(QUICK, (30,), 2, 0)
@@ -216,6 +217,7 @@ def test_native_default_is_as_good_as_the_jax_default(names):
     assert ratios.mean() <= 1 + 1e-7, ratios
 
 
+@pytest.mark.slow  # > 10 s on a loaded machine: make test-slow / CI
 @native
 def test_native_float32_keeps_the_guarantee():
     """float32 rays and map: the kernel runs in float32 (Levenberg–Marquardt in double)
@@ -247,6 +249,7 @@ def test_native_batch_equals_one_scan_at_a_time():
             np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
 
 
+@pytest.mark.slow  # > 10 s on a loaded machine: make test-slow / CI
 @native
 def test_backend_selection(monkeypatch):
     """``"auto"`` runs the kernel here; ``"jax"`` the JAX path; a custom solver makes

@@ -71,6 +71,10 @@ def installed(tmp_path_factory):
         "lidarjax/_experiments/configs/demo.yaml",
     ):
         assert required in names, f"{required} is not in the wheel"
+    for script in (ROOT / "experiments").glob("[a-z]*.py"):  # every experiment + config
+        assert f"lidarjax/_experiments/experiments/{script.name}" in names, script.name
+    for config in (ROOT / "configs").glob("*.yaml"):
+        assert f"lidarjax/_experiments/configs/{config.name}" in names, config.name
     assert not any(n.endswith(".so") for n in names)  # a pure wheel: kernels build locally
     venv = base / "venv"
     _run([sys.executable, "-m", "venv", venv], cwd=base, env=env)
@@ -107,7 +111,7 @@ def test_experiment_demo_from_the_wheel(installed):
     assert not list(site.rglob("outputs"))  # nothing written into the installation
 
 
-def test_readme_quickstart_from_the_wheel(installed):
+def test_readme_examples_from_the_wheel(installed):
     venv, cwd, env = installed
     blocks = re.findall(r"```python\n(.*?)```", (ROOT / "README.md").read_text(), flags=re.S)
     script = cwd / "quickstart.py"
@@ -117,6 +121,7 @@ def test_readme_quickstart_from_the_wheel(installed):
         "assert track.shape == (19, 3) and bool(np.isfinite(np.asarray(track)).all())",
         "print('quickstart ok')",
     )
-    script.write_text(blocks[0] + "\n" + "\n".join(checks) + "\n")
+    assert len(blocks) >= 6  # the quickstart and every format example
+    script.write_text("\n".join(blocks) + "\n" + "\n".join(checks) + "\n")
     out = _run([venv / "bin" / "python", script], cwd=cwd, env=env).stdout
     assert "quickstart ok" in out

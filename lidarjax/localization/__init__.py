@@ -37,6 +37,7 @@ from ._resampling import (
     systematic_resample,
 )
 from ._scan import CoarseToFineScanModel, ScanModel, coarse_to_fine_scan_model
+from ._sharding import particle_mesh, shard_state
 from .refine import (
     DCTScan,
     FieldScan,
@@ -100,4 +101,6 @@ __all__ = [
     "count_occupied_bins",
     "global_injector",
     "kld_particle_count",
+    "particle_mesh",
+    "shard_state",
 ]

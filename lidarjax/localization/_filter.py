@@ -39,6 +39,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from .. import _checks
 from ..rays import is_concrete
+from . import _sharding
 from ._particles import ParticleState, estimate
 from ._poses import Pose, dof, take, to_vector
 from ._resampling import (
@@ -342,14 +343,15 @@ class ParticleFilter(eqx.Module):
         """Whether augmented MCL (random-particle injection) is on."""
         return self.alpha_slow != 0 or self.alpha_fast != 0
 
-    def _predict(self, state: ParticleState, control, z, update, key):
-        """Motion update and log-likelihood (plus importance correction) per particle."""
+    def _predict(self, state: ParticleState, control, z, update, key, mesh=None):
+        """Motion update and log-likelihood (plus importance correction) per particle
+        (with a ``mesh``: the measurement per shard, see :mod:`._sharding`)."""
         dtype = state.log_weights.dtype
         if not hasattr(self.motion, "propose"):
-            particles = self.motion(state.particles, control, key=key)
+            particles = _sharding.split(self.motion(state.particles, control, key=key), mesh)
             ll = _checks.cond(
                 update,
-                lambda: jnp.asarray(self.measurement(particles, z), dtype),
+                lambda: jnp.asarray(_sharding.measure(self.measurement, particles, z, mesh), dtype),
                 lambda: jnp.zeros_like(state.log_weights),
             )
             return particles, ll
@@ -391,13 +393,19 @@ class ParticleFilter(eqx.Module):
         ``+inf`` ones share the weight among those particles
         (``StepInfo.infinite_likelihood``). A state with no particles raises
         ``ValueError``.
+
+        Sharding: on a state placed by :func:`~lidarjax.localization.shard_state` the
+        measurement update runs per shard and the returned state is sharded the same way;
+        the results equal the one-device results bitwise (see
+        :func:`~lidarjax.localization.shard_state`).
         """
-        n = _check_particle_count(state.log_weights, "state")
+        return self._step(state, control, z, update, _sharding.state_mesh(state))
+
+    def _step(self, state: ParticleState, control, z, update, mesh):
+        """:meth:`step`; ``mesh`` (static) is the particles' mesh or None."""
+        _check_particle_count(state.log_weights, "state")
         _check_controls_concrete(control, "control", per_step=False)
         key, k_motion, k_resample = jax.random.split(state.key, 3)
-        if self.kld or self.augmented:
-            k_resample, k_cand, k_inject = jax.random.split(k_resample, 3)
-        dtype = state.log_weights.dtype
         # A NaN/inf control (traced): no motion, no measurement update, no resampling;
         # the motion model sees zeros so that nothing downstream is computed from NaN.
         bad_control = _bad_control(control)
@@ -410,8 +418,25 @@ class ParticleFilter(eqx.Module):
             control,
         )
         update = jnp.asarray(update) & ~bad_control
-        particles, ll = self._predict(state, safe_control, z, update, k_motion)
+        particles, ll = self._predict(state, safe_control, z, update, k_motion, mesh)
+        n = state.log_weights.shape[-1]
         particles = _where_tree(jnp.broadcast_to(bad_control, (n,)), state.particles, particles)
+        args = (state, particles, ll, bad_control, update, key, k_resample)
+        if mesh is None:
+            return self._update(*args)
+        # sharded: the bookkeeping over all particles (normaliser, n_eff, estimate,
+        # resampling) runs on the gathered arrays on every device, exactly as on one
+        # device (no per-shard partial sums); the new state is split again.
+        new_state, info = _sharding.replicated(ParticleFilter._update, mesh, self, *args)
+        return _sharding.split_state(new_state, mesh), info
+
+    def _update(self, state: ParticleState, particles, ll, bad_control, update, key, k_resample):
+        """The weights, estimate and resampling of :meth:`step` after the motion update
+        (``particles``) and the measurement log-likelihoods ``ll``."""
+        n = _check_particle_count(state.log_weights, "state")
+        if self.kld or self.augmented:
+            k_resample, k_cand, k_inject = jax.random.split(k_resample, 3)
+        dtype = state.log_weights.dtype
 
         n_active = jnp.asarray(state.n_active, jnp.int32)
         slots = jnp.arange(n)
@@ -574,19 +599,21 @@ class ParticleFilter(eqx.Module):
         _steps_of("updates", updates, n_steps)
         n_pad = step_bucket(n_steps) - n_steps
         padded = _pad_steps((controls, measurements, updates), n_pad)
-        final, infos = self._run_padded(state, *padded, np.int32(n_steps))
+        mesh = _sharding.state_mesh(state)
+        final, infos = self._run_padded(state, *padded, np.int32(n_steps), mesh)
         return final, jax.tree.map(lambda x: x[:n_steps], infos)
 
     @_checks.checked_jit
-    def _run_padded(self, state: ParticleState, controls, measurements, updates, n_live):
+    def _run_padded(self, state: ParticleState, controls, measurements, updates, n_live, mesh=None):
         """The scan of :meth:`run` over the padded steps; steps ``>= n_live`` (traced) run
-        without measurement update and leave the state as it was."""
+        without measurement update and leave the state as it was. ``mesh`` (static): the
+        particles' mesh of a sharded state, or None."""
         n_total = jax.tree.leaves(updates)[0].shape[0]
         live = jnp.arange(n_total) < n_live
 
         def body(s, xs):
             c, z, u, keep = xs
-            new, info = self.step(s, c, z, u & keep)
+            new, info = self._step(s, c, z, u & keep, mesh)
             return _select_tree(keep, new, s), info
 
         return _checks.scan(body, state, (controls, measurements, updates, live))

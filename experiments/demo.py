@@ -35,7 +35,7 @@ import jax.numpy as jnp  # noqa: E402
 import jaxlie  # noqa: E402
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
-from _common import output_dir, run_info, write_results  # noqa: E402
+from _common import completed_job, output_dir, run_info, write_results  # noqa: E402
 from _schemas import validate  # noqa: E402
 from omegaconf import DictConfig  # noqa: E402
 
@@ -264,6 +264,8 @@ def main(cfg: DictConfig) -> dict:
     # run time is compilation); LIDARJAX_JAX_CACHE=off measures a cold start
     cache = lidarjax.enable_compilation_cache()
     out = output_dir()
+    if (done := completed_job(out)) is not None:  # a sweep job that already finished
+        return done
     key = jax.random.key(int(cfg.seed))
     world = make_office(cfg.seed, width_m=cfg.world.width_m, height_m=cfg.world.height_m)
     fov = np.radians(cfg.scans.fov_deg)

@@ -38,7 +38,16 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
-from _common import fmt, grid_model, mapping_stats, output_dir, run_info, write_results  # noqa: E402
+from _common import (  # noqa: E402
+    completed_job,
+    fmt,
+    grid_model,
+    mapping_stats,
+    mark_complete,
+    output_dir,
+    run_info,
+    write_results,
+)
 from _schemas import INITS, VARIANT_KEYS, validate  # noqa: E402
 from mcl import NAMES, error_grid, initial_states, prepare, wrap  # noqa: E402
 from omegaconf import DictConfig, OmegaConf  # noqa: E402
@@ -483,7 +492,7 @@ def write_outputs(out: Path, cfg, results, surfaces, runtime_s) -> None:
         "runtime_s": runtime_s,
         **run_info(),
     }
-    write_results(out, results=summary, markdown=write_tables(results, cfg))
+    write_results(out, results=summary, markdown=write_tables(results, cfg), partial=True)
     plot_surfaces(surfaces, out)
     plot_errors(results, out)
 
@@ -492,6 +501,8 @@ def write_outputs(out: Path, cfg, results, surfaces, runtime_s) -> None:
 def main(cfg: DictConfig) -> None:
     validate(cfg, "mcl_remedies")
     out = output_dir()
+    if (done := completed_job(out)) is not None:  # a sweep job that already finished
+        return done
     variants = {k: _variant(v) for k, v in cfg.variants.items()}
     if cfg.only is not None:
         missing = set(cfg.only) - set(variants)
@@ -543,6 +554,7 @@ def main(cfg: DictConfig) -> None:
             + f" ({res['seconds']:.0f} s)"
         )
         write_outputs(out, cfg, results, surfaces, time.perf_counter() - t0)
+    mark_complete(out)  # a sweep job: results.json holds every log
     print(write_tables(results, cfg))
 
 

@@ -204,6 +204,8 @@ def collect(sweep_dir: str | Path) -> dict:
         row.update({k: numbers.get(k) for k in number_cols})
         table.append(row)
     table.sort(key=lambda r: [_sort_key(r.get(k)) for k in override_cols])
+    timing = [k for k in ("runtime_s", "total_s") if k in number_cols]
+    number_cols = [k for k in number_cols if k not in timing] + timing  # run time last
     columns = ["job", "status", "note", *override_cols, *number_cols]
     return {
         "experiment": experiment,

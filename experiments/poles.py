@@ -46,7 +46,7 @@ import jax.numpy as jnp  # noqa: E402
 import jaxlie  # noqa: E402
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
-from _common import output_dir, write_results  # noqa: E402
+from _common import completed_job, output_dir, write_results  # noqa: E402
 from _schemas import validate  # noqa: E402
 from matplotlib.patches import Rectangle  # noqa: E402
 from omegaconf import DictConfig, OmegaConf  # noqa: E402
@@ -519,6 +519,8 @@ def kitti_protocol(cfg, gt, world0, pcfg, odometry) -> dict:
 def main(cfg: DictConfig) -> None:
     validate(cfg, "poles")
     out = output_dir()
+    if (done := completed_job(out)) is not None:  # a sweep job that already finished
+        return done
     t_start = time.perf_counter()
     traj = load_urban_trajectory()
     stop = len(traj.xy_yaw) if cfg.route.stop is None else int(cfg.route.stop)

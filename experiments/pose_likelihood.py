@@ -40,6 +40,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from _common import (  # noqa: E402
+    completed_job,
     even_odd_scans,
     grid_model,
     mapping_stats,
@@ -400,6 +401,8 @@ def plot(rows: list[dict]):
 def main(cfg: DictConfig) -> dict:
     validate(cfg, "pose_likelihood")
     out = output_dir()
+    if (done := completed_job(out)) is not None:  # a sweep job that already finished
+        return done
     t0 = time.perf_counter()
     rows = []
     for name in (bar := tqdm(list(cfg.logs), desc="logs", unit="log")):
@@ -416,8 +419,8 @@ def main(cfg: DictConfig) -> dict:
         },
     }
     md = markdown(rows, cfg, total)
-    write_results(out, results=results, markdown=md, cfg=cfg, allow_nan=False)
     save_figure(plot(rows), out / "pose_likelihood.png", dpi=100)
+    write_results(out, results=results, markdown=md, cfg=cfg, allow_nan=False)
     print(md)
     print(f"wrote {out / 'results.json'}, {out / 'results.md'}, {out / 'pose_likelihood.png'}")
     return results

@@ -33,7 +33,7 @@ GUIDE_ORDER = (
 
 # Pages whose examples run on their own, each in a fresh namespace (they reuse names such
 # as ``log`` and ``out`` that the pages above define differently).
-STANDALONE = ("formats.md", "command-line.md")
+STANDALONE = ("formats.md", "command-line.md", "scaling.md")
 
 
 def python_blocks(path: Path) -> list[str]:
@@ -146,5 +146,10 @@ def test_standalone_guide_pages_run(name, tmp_path, monkeypatch):
     if name == "formats.md":
         assert ns["back"] is not None and (ns["out"] / "scan100.svg").is_file()
         assert (ns["out"] / "intel.pgm").is_file() and (ns["out"] / "gt.tum").is_file()
-    else:
+    elif name == "command-line.md":
         assert (ns["out"] / "intel" / "map.npz").is_file()
+    else:  # scaling.md: the sharded run equals one device's; a sweep resumed and merged
+        assert np.array_equal(
+            np.asarray(ns["final"].log_weights), np.asarray(ns["same"].log_weights)
+        )
+        assert [r["status"] for r in ns["merge"](ns["sweep"])["rows"]] == ["done", "done"]

@@ -397,9 +397,21 @@ class ParticleFilter(eqx.Module):
         Sharding: on a state placed by :func:`~lidarjax.localization.shard_state` the
         measurement update runs per shard and the returned state is sharded the same way;
         the results equal the one-device results bitwise (see
-        :func:`~lidarjax.localization.shard_state`).
+        :func:`~lidarjax.localization.shard_state`). Such a step is compiled (one program
+        per mesh and shapes); under your own ``jit`` the mesh is not visible, and XLA's
+        default partitioning applies (correct, but not guaranteed bitwise).
         """
-        return self._step(state, control, z, update, _sharding.state_mesh(state))
+        mesh = _sharding.state_mesh(state)
+        if mesh is None:
+            return self._step(state, control, z, update, None)
+        _check_particle_count(state.log_weights, "state")
+        _check_controls_concrete(control, "control", per_step=False)
+        return self._step_sharded(state, control, z, update, mesh)
+
+    @_checks.checked_jit
+    def _step_sharded(self, state: ParticleState, control, z, update, mesh):
+        """:meth:`step` on a sharded state, compiled (``mesh`` static)."""
+        return self._step(state, control, z, update, mesh)
 
     def _step(self, state: ParticleState, control, z, update, mesh):
         """:meth:`step`; ``mesh`` (static) is the particles' mesh or None."""
@@ -571,6 +583,10 @@ class ParticleFilter(eqx.Module):
         ``ceil(best_fraction * n)`` particles) that would become a traced count computed
         in the weights' dtype: ``ceil(0.3 * 100)`` is 31 in float32, 30 in Python. And
         KLD-sampling already uses the slots as its maximum particle count.
+
+        Sharding: a state placed by :func:`~lidarjax.localization.shard_state` compiles a
+        program for its mesh that measures each shard on its own device and returns a state
+        sharded the same way, with bitwise the one-device results.
 
         Args:
             state: initial state (at least one particle).

@@ -3,8 +3,9 @@ its particles and log-weights split along the particle axis over a 1-D device me
 :class:`~lidarjax.localization.ParticleFilter` keeps that layout.
 
 What runs where inside a filter step on a sharded state (``ParticleFilter.step`` /
-``run`` find the mesh from the state's arrays; under ``run``'s ``lax.scan`` it is a static
-argument of the compiled program):
+``run`` find the mesh from the concrete state's arrays and pass it as a static argument
+of their compiled programs; a ``step`` under your own ``jit`` sees a traced state, no
+mesh, and gets XLA's default partitioning, correct but not guaranteed bitwise):
 
 - motion update: elementwise per particle, partitioned by XLA (GSPMD) over the shards
   (the noise comes from JAX's partitionable threefry, so every shard draws exactly the
@@ -150,14 +151,6 @@ def split(tree, mesh: Mesh | None):
     if mesh is None:
         return tree
     s = NamedSharding(mesh, P(PARTICLE_AXIS))
-    return jax.tree.map(lambda x: jax.lax.with_sharding_constraint(x, s), tree)
-
-
-def gather(tree, mesh: Mesh | None):
-    """Constrain every array leaf to be replicated on every device of ``mesh``."""
-    if mesh is None:
-        return tree
-    s = NamedSharding(mesh, P())
     return jax.tree.map(lambda x: jax.lax.with_sharding_constraint(x, s), tree)
 
 

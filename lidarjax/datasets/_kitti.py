@@ -25,7 +25,9 @@ _TIMES_FORMAT = "one finite decimal number (seconds) per line"
 _ROTATION_TOL = 1e-3  # max deviation of the singular values of R from 1
 
 
-def _read_rows(path: Path, n_cols: int, expected: str) -> tuple[np.ndarray, list[int]]:
+def _read_rows(
+    path: Path, n_cols: int, expected: str, what: str = "data rows"
+) -> tuple[np.ndarray, list[int]]:
     """Parse a whitespace-separated numeric table with exactly ``n_cols`` columns.
 
     Lines end at ``\\n``; values are separated by ASCII whitespace and must be decimal
@@ -60,7 +62,7 @@ def _read_rows(path: Path, n_cols: int, expected: str) -> tuple[np.ndarray, list
         rows.append(values)
         lines.append(lineno)
     if not rows:
-        raise DatasetFormatError(path, "file holds no data rows", expected=expected)
+        raise DatasetFormatError(path, f"file holds no {what}", expected=expected)
     return np.asarray(rows, dtype=np.float64), lines
 
 

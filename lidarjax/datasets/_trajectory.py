@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from ._errors import DatasetFormatError
-from ._text import NumberSyntaxError, parse_numbers
+from ._kitti import _read_rows
 
 __all__ = ["TumTrajectory", "read_tum", "write_kitti_poses", "write_tum"]
 
@@ -269,47 +269,26 @@ def read_tum(path: str | os.PathLike[str]) -> TumTrajectory:
             names the line.
     """
     path = Path(path)
-    rows: list[list[float]] = []
-    lines: list[int] = []
-    for lineno, line in enumerate(path.read_bytes().split(b"\n"), start=1):
-        tokens = line.split()
-        if not tokens or tokens[0].startswith(b"#"):
-            continue
-        if len(tokens) != 8:
-            raise DatasetFormatError(
-                path, f"found {len(tokens)} values, not 8", line=lineno, expected=_TUM_FORMAT
-            )
-        try:
-            values = parse_numbers(tokens)
-        except NumberSyntaxError as exc:
-            raise DatasetFormatError(
-                path, f"non-numeric value ({exc})", line=lineno, expected=_TUM_FORMAT
-            ) from None
-        if not all(np.isfinite(values)):
-            raise DatasetFormatError(
-                path, "value is NaN or infinite", line=lineno, expected=_TUM_FORMAT
-            )
-        q_norm = float(np.linalg.norm(values[4:]))
-        if abs(q_norm - 1.0) > _READ_UNIT_TOL:
+    data, lines = _read_rows(path, 8, _TUM_FORMAT, what="poses")  # finite decimal numbers
+    q_norm = np.linalg.norm(data[:, 4:], axis=1)
+    bad_q = np.flatnonzero(np.abs(q_norm - 1.0) > _READ_UNIT_TOL)
+    back = np.flatnonzero(data[1:, 0] <= data[:-1, 0]) + 1
+    if bad_q.size or back.size:
+        i, kind = min((int(idx[0]), kind) for idx, kind in ((bad_q, "q"), (back, "t")) if idx.size)
+        if kind == "q":
             raise DatasetFormatError(
                 path,
-                f"quaternion norm {q_norm!r} is not 1 within {_READ_UNIT_TOL}",
-                line=lineno,
+                f"quaternion norm {float(q_norm[i])!r} is not 1 within {_READ_UNIT_TOL}",
+                line=lines[i],
                 expected=_TUM_FORMAT,
             )
-        if rows and values[0] <= rows[-1][0]:
-            raise DatasetFormatError(
-                path,
-                f"timestamp {values[0]!r} is not after the previous one ({rows[-1][0]!r}, "
-                f"line {lines[-1]})",
-                line=lineno,
-                expected=_TUM_FORMAT + ", timestamps strictly increasing",
-            )
-        rows.append(values)
-        lines.append(lineno)
-    if not rows:
-        raise DatasetFormatError(path, "file holds no poses", expected=_TUM_FORMAT)
-    data = np.asarray(rows, dtype=np.float64)
+        raise DatasetFormatError(
+            path,
+            f"timestamp {float(data[i, 0])!r} is not after the previous one "
+            f"({float(data[i - 1, 0])!r}, line {lines[i - 1]})",
+            line=lines[i],
+            expected=_TUM_FORMAT + ", timestamps strictly increasing",
+        )
     q = np.column_stack([data[:, 7], data[:, 4:7]])  # scalar first
     q /= np.linalg.norm(q, axis=1, keepdims=True)
     poses = np.column_stack([data[:, 1:4], q])

@@ -321,6 +321,25 @@ class AbsoluteTrajectoryError:
     aligned: np.ndarray
 
 
+def _paired(estimate_xy_yaw, truth_xy_yaw, valid) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Checked ``[N 3]`` estimate and truth and the rows to use: finite positions in both
+    and ``valid`` (optional ``[N]`` bool)."""
+    est = _check_poses("estimate_xy_yaw", estimate_xy_yaw)
+    gt = _check_poses("truth_xy_yaw", truth_xy_yaw)
+    if est.shape != gt.shape:
+        raise ValueError(
+            f"estimate_xy_yaw and truth_xy_yaw must have the same shape, got {est.shape} "
+            f"and {gt.shape}"
+        )
+    use = np.isfinite(est[:, :2]).all(1) & np.isfinite(gt[:, :2]).all(1)
+    if valid is not None:
+        valid = np.asarray(valid, bool)
+        if valid.shape != (est.shape[0],):
+            raise ValueError(f"valid must have shape [{est.shape[0]}], got {valid.shape}")
+        use &= valid
+    return est, gt, use
+
+
 def align_se2(
     estimate_xy_yaw: np.ndarray, truth_xy_yaw: np.ndarray, *, valid: np.ndarray | None = None
 ) -> tuple[float, np.ndarray]:
@@ -340,19 +359,7 @@ def align_se2(
     Raises:
         ValueError: bad shapes, or fewer than 2 usable rows.
     """
-    est = _check_poses("estimate_xy_yaw", estimate_xy_yaw)
-    gt = _check_poses("truth_xy_yaw", truth_xy_yaw)
-    if est.shape != gt.shape:
-        raise ValueError(
-            f"estimate_xy_yaw and truth_xy_yaw must have the same shape, got {est.shape} "
-            f"and {gt.shape}"
-        )
-    use = np.isfinite(est[:, :2]).all(1) & np.isfinite(gt[:, :2]).all(1)
-    if valid is not None:
-        valid = np.asarray(valid, bool)
-        if valid.shape != (est.shape[0],):
-            raise ValueError(f"valid must have shape [{est.shape[0]}], got {valid.shape}")
-        use &= valid
+    est, gt, use = _paired(estimate_xy_yaw, truth_xy_yaw, valid)
     if use.sum() < 2:
         raise ValueError(f"need at least 2 finite, valid rows to align, got {int(use.sum())}")
     e, g = est[use, :2], gt[use, :2]
@@ -386,19 +393,7 @@ def absolute_trajectory_error(
     Returns:
         An :class:`AbsoluteTrajectoryError`.
     """
-    est = _check_poses("estimate_xy_yaw", estimate_xy_yaw)
-    gt = _check_poses("truth_xy_yaw", truth_xy_yaw)
-    if est.shape != gt.shape:
-        raise ValueError(
-            f"estimate_xy_yaw and truth_xy_yaw must have the same shape, got {est.shape} "
-            f"and {gt.shape}"
-        )
-    use = np.isfinite(est[:, :2]).all(1) & np.isfinite(gt[:, :2]).all(1)
-    if valid is not None:
-        valid = np.asarray(valid, bool)
-        if valid.shape != (est.shape[0],):
-            raise ValueError(f"valid must have shape [{est.shape[0]}], got {valid.shape}")
-        use &= valid
+    est, gt, use = _paired(estimate_xy_yaw, truth_xy_yaw, valid)
     if not use.any():
         raise ValueError("no row is finite and valid in both trajectories")
     theta, t = align_se2(est, gt, valid=use) if align else (0.0, np.zeros(2))

@@ -343,15 +343,14 @@ class ParticleFilter(eqx.Module):
         """Whether augmented MCL (random-particle injection) is on."""
         return self.alpha_slow != 0 or self.alpha_fast != 0
 
-    def _predict(self, state: ParticleState, control, z, update, key, mesh=None):
-        """Motion update and log-likelihood (plus importance correction) per particle
-        (with a ``mesh``: the measurement per shard, see :mod:`._sharding`)."""
+    def _predict(self, state: ParticleState, control, z, update, key):
+        """Motion update and log-likelihood (plus importance correction) per particle."""
         dtype = state.log_weights.dtype
         if not hasattr(self.motion, "propose"):
-            particles = _sharding.split(self.motion(state.particles, control, key=key), mesh)
+            particles = self.motion(state.particles, control, key=key)
             ll = _checks.cond(
                 update,
-                lambda: jnp.asarray(_sharding.measure(self.measurement, particles, z, mesh), dtype),
+                lambda: jnp.asarray(self.measurement(particles, z), dtype),
                 lambda: jnp.zeros_like(state.log_weights),
             )
             return particles, ll
@@ -417,6 +416,20 @@ class ParticleFilter(eqx.Module):
         """:meth:`step`; ``mesh`` (static) is the particles' mesh or None."""
         _check_particle_count(state.log_weights, "state")
         _check_controls_concrete(control, "control", per_step=False)
+        if mesh is not None:
+            return self._step_on_mesh(state, control, z, update, mesh)
+        key, k_motion, k_resample, bad_control, safe_control, update = self._step_keys(
+            state, control, update
+        )
+        particles, ll = self._predict(state, safe_control, z, update, k_motion)
+        n = state.log_weights.shape[-1]
+        particles = _where_tree(jnp.broadcast_to(bad_control, (n,)), state.particles, particles)
+        return self._update(state, particles, ll, bad_control, update, key, k_resample)
+
+    @staticmethod
+    def _step_keys(state: ParticleState, control, update):
+        """The keys of a step and its control check: ``(key, k_motion, k_resample,
+        bad_control, safe_control, update)``."""
         key, k_motion, k_resample = jax.random.split(state.key, 3)
         # A NaN/inf control (traced): no motion, no measurement update, no resampling;
         # the motion model sees zeros so that nothing downstream is computed from NaN.
@@ -430,17 +443,95 @@ class ParticleFilter(eqx.Module):
             control,
         )
         update = jnp.asarray(update) & ~bad_control
-        particles, ll = self._predict(state, safe_control, z, update, k_motion, mesh)
-        n = state.log_weights.shape[-1]
-        particles = _where_tree(jnp.broadcast_to(bad_control, (n,)), state.particles, particles)
-        args = (state, particles, ll, bad_control, update, key, k_resample)
-        if mesh is None:
-            return self._update(*args)
-        # sharded: the bookkeeping over all particles (normaliser, n_eff, estimate,
-        # resampling) runs on the gathered arrays on every device, exactly as on one
-        # device (no per-shard partial sums); the new state is split again.
-        new_state, info = _sharding.replicated(ParticleFilter._update, mesh, self, *args)
-        return _sharding.split_state(new_state, mesh), info
+        return key, k_motion, k_resample, bad_control, safe_control, update
+
+    def _step_on_mesh(self, state: ParticleState, control, z, update, mesh):
+        """:meth:`step` on particles split over ``mesh`` (see :mod:`._sharding`): one
+        all-gather per step, then the bookkeeping on the whole arrays on every device,
+        exactly as on one device; the new particles and weights are split again.
+
+        With a per-particle measurement (:class:`ScanModel`) and no proposal hook, the
+        motion update is partitioned by XLA (elementwise; JAX's partitionable threefry
+        draws each shard's numbers of the one-device filter) and the measurement runs on
+        each device's own particles before the gather. Otherwise the state is gathered
+        first and the whole one-device step runs on every device."""
+        rest = (state.key, state.n_active, state.log_w_slow, state.log_w_fast, state.n_updates)
+
+        def rebuild(particles, log_weights, rest):
+            key, n_active, log_w_slow, log_w_fast, n_updates = rest
+            return ParticleState(
+                particles,
+                log_weights,
+                key,
+                n_active=n_active,
+                log_w_slow=log_w_slow,
+                log_w_fast=log_w_fast,
+                n_updates=n_updates,
+            )
+
+        def unbuild(new_state, info):
+            split = (new_state.particles, new_state.log_weights)
+            kept = (
+                new_state.key,
+                new_state.n_active,
+                new_state.log_w_slow,
+                new_state.log_w_fast,
+                new_state.n_updates,
+            )
+            return split, (kept, info)
+
+        if _sharding.per_particle(self.measurement) and not hasattr(self.motion, "propose"):
+            key, k_motion, k_resample, bad_control, safe_control, update = self._step_keys(
+                state, control, update
+            )
+            moved = _sharding.split(self.motion(state.particles, safe_control, key=k_motion), mesh)
+            dtype = state.log_weights.dtype
+
+            def local(split, rep):
+                moved, old, log_weights = split
+                filt, z, update, bad_control = rep
+                ll = _checks.cond(
+                    update,
+                    lambda: jnp.asarray(filt.measurement(moved, z), dtype),
+                    lambda: jnp.zeros_like(log_weights),
+                )
+                m = log_weights.shape[0]
+                kept = _where_tree(jnp.broadcast_to(bad_control, (m,)), old, moved)
+                return kept, log_weights, ll
+
+            def full(split, rep):
+                particles, log_weights, ll = split
+                filt, rest, bad_control, update, key, k_resample = rep
+                whole = rebuild(particles, log_weights, rest)
+                return unbuild(
+                    *filt._update(whole, particles, ll, bad_control, update, key, k_resample)
+                )
+
+            reps = {"local": (self, z, update, bad_control)}
+            reps["full"] = (self, rest, bad_control, update, key, k_resample)
+            (particles, log_weights), (kept, info) = _sharding.gather_then(
+                lambda split, rep: local(split, rep["local"]),
+                lambda split, rep: full(split, rep["full"]),
+                mesh,
+                (moved, state.particles, state.log_weights),
+                reps,
+            )
+        else:
+
+            def full(split, rep):
+                particles, log_weights = split
+                filt, rest, control, z, update = rep
+                whole = rebuild(particles, log_weights, rest)
+                return unbuild(*filt._step(whole, control, z, update, None))
+
+            (particles, log_weights), (kept, info) = _sharding.gather_then(
+                lambda split, rep: split,
+                full,
+                mesh,
+                (state.particles, state.log_weights),
+                (self, rest, control, z, update),
+            )
+        return _sharding.split_state(rebuild(particles, log_weights, kept), mesh), info
 
     def _update(self, state: ParticleState, particles, ll, bad_control, update, key, k_resample):
         """The weights, estimate and resampling of :meth:`step` after the motion update

@@ -12,15 +12,19 @@ mesh, and gets XLA's default partitioning, correct but not guaranteed bitwise):
   numbers the one-device filter draws for its particles);
 - measurement update: a :class:`~lidarjax.localization.ScanModel` (the costly part) runs
   per shard under ``jax.shard_map``, each device on its own particles, native kernels
-  included (the FFI fold kernel is called once per shard on that shard's rays); any other
-  measurement model is left to GSPMD, which is correct for any function of the particles
-  (a model that mixes particles, like ``CoarseToFineScanModel``'s spread, must see all
-  of them, so it is not split by hand);
+  included (the FFI fold kernel is called once per shard on that shard's rays);
+- one all-gather per step (:func:`gather_then`): the new poses, the previous
+  log-weights, the log-likelihoods and the per-shard check flags, packed bit for bit into
+  one ``[n_local k]`` uint32 array;
 - the bookkeeping over all particles (normaliser, ``n_eff``, estimate, resampling's
-  ``cumsum`` + ``searchsorted`` and gather, KLD-sampling's sort, injection): the
-  particles and log-likelihoods are gathered (one all-gather of ``[n 4]`` poses and
-  ``[n]`` log-likelihoods per step) and every device computes it on the full arrays,
-  exactly as one device does; the new state is split again.
+  ``cumsum`` + ``searchsorted`` and gather, KLD-sampling's sort, injection) then runs on
+  every device on the full arrays, exactly as on one device; each device keeps its rows
+  of the new state.
+
+Any other measurement model (one that may mix particles, like
+``CoarseToFineScanModel``'s spread) or a motion model with a proposal hook: the state is
+gathered first (the same single all-gather) and the whole one-device step runs on every
+device: bitwise the same results, without a speed-up.
 
 So a sharded filter gives bitwise the one-device results for the same key: no reduction
 over particles is split into per-shard partial sums.
@@ -30,6 +34,7 @@ from __future__ import annotations
 
 import equinox as eqx
 import jax
+import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
@@ -167,57 +172,105 @@ def split_state(state: ParticleState, mesh: Mesh | None) -> ParticleState:
     )
 
 
-def _per_particle(measurement) -> bool:
+def per_particle(measurement) -> bool:
     """Measurement models known to treat every particle on its own (safe to split)."""
     from ._scan import ScanModel
 
     return isinstance(measurement, ScanModel)
 
 
-def measure(measurement, particles, z, mesh: Mesh | None):
-    """``measurement(particles, z)``; with a ``mesh`` and a per-particle model
-    (:class:`ScanModel`), evaluated per shard under ``jax.shard_map`` (each device on its
-    own particles; native kernels run per shard). Run-time checks inside the model are
-    returned per shard and re-attached at the caller's level (see :mod:`lidarjax._checks`).
+def _to_words(x) -> jax.Array:
+    """``[m ...]`` array -> ``[m k]`` uint32 words holding its bits exactly."""
+    m = x.shape[0]
+    x = x.reshape(m, -1)
+    if x.dtype == jnp.bool_:
+        return x.astype(jnp.uint32)
+    if jnp.issubdtype(x.dtype, jnp.complexfloating):
+        raise ValueError(f"sharded particle arrays cannot be complex, got {x.dtype}")
+    size = x.dtype.itemsize
+    if size == 8:
+        return jax.lax.bitcast_convert_type(x, jnp.uint32).reshape(m, -1)
+    if size == 4:
+        return jax.lax.bitcast_convert_type(x, jnp.uint32)
+    narrow = {2: jnp.uint16, 1: jnp.uint8}[size]
+    return jax.lax.bitcast_convert_type(x, narrow).astype(jnp.uint32)
+
+
+def _from_words(w, tail: tuple[int, ...], dtype) -> jax.Array:
+    """Inverse of :func:`_to_words` for an array of trailing shape ``tail``."""
+    m = w.shape[0]
+    dtype = jnp.dtype(dtype)
+    if dtype == jnp.bool_:
+        x = w != 0
+    elif dtype.itemsize == 8:
+        x = jax.lax.bitcast_convert_type(w.reshape(m, -1, 2), dtype)
+    elif dtype.itemsize == 4:
+        x = jax.lax.bitcast_convert_type(w, dtype)
+    else:
+        narrow = {2: jnp.uint16, 1: jnp.uint8}[dtype.itemsize]
+        x = jax.lax.bitcast_convert_type(w.astype(narrow), dtype)
+    return x.reshape((m, *tail))
+
+
+def gather_then(local_fn, full_fn, mesh: Mesh, split_in, rep_in):
+    """One sharded filter step's communication pattern, with exactly one collective.
+
+    Under one ``jax.shard_map`` over ``mesh``: ``local_fn(split_local, rep)`` runs on
+    each device's rows of ``split_in`` (arrays with a leading ``[n]`` axis, split over the
+    devices) and returns arrays with the same leading (local) axis; those are packed bit
+    for bit into one ``[n_local k]`` uint32 array (with the per-shard check flags) and
+    gathered with a single ``all_gather``; then ``full_fn(split_full, rep)`` runs on the
+    whole arrays on every device (exactly the one-device computation) and returns
+    ``(split_out, rep_out)``: ``split_out`` (leading ``[n]``) comes back split over the
+    devices, ``rep_out`` replicated. ``rep_in``'s array leaves are replicated inputs, its
+    other leaves static. Run-time checks of both functions are re-attached at the caller's
+    level (see :mod:`lidarjax._checks`).
+
+    Why a single collective: XLA's CPU runtime runs independent operations of a program
+    concurrently on one shared thread pool, and each device's part of a collective holds
+    a pool thread until every device has arrived. Several independent collectives per
+    step (one all-gather per gathered array, an all-reduce of the check flags) can take
+    every thread of a small pool for one device while the other waits for a thread (a
+    deadlock XLA aborts after 40 s, seen on a 2-core machine). One collective per step,
+    each depending on the previous step's result, holds at most one thread per device.
     """
-    if mesh is None or not _per_particle(measurement):
-        return measurement(particles, z)
-    arrays, static = eqx.partition(measurement, eqx.is_array)
+    d = mesh.devices.size
+    rep_arrays, rep_static = eqx.partition(rep_in, eqx.is_array)
     box: dict = {}
 
-    def body(arrays, particles, z):
-        model = eqx.combine(arrays, static)
-        out, flags, messages = _checks._collect(model, particles, z)
-        box["messages"] = messages
-        return out, flags[None]
+    def body(split_local, rep_arrays):
+        rep = eqx.combine(rep_arrays, rep_static)
+        loc, f_local, m_local = _checks._collect(local_fn, split_local, rep)
+        leaves, treedef = jax.tree.flatten(loc)
+        n_local = leaves[0].shape[0]
+        cols = [_to_words(x) for x in leaves]
+        cols.append(jnp.broadcast_to(f_local.astype(jnp.uint32), (n_local, f_local.shape[0])))
+        edges = np.cumsum([0] + [c.shape[1] for c in cols])
+        payload = jnp.concatenate(cols, axis=1)
+        whole = jax.lax.all_gather(payload, PARTICLE_AXIS, axis=0, tiled=True)
+        full = [
+            _from_words(whole[:, edges[i] : edges[i + 1]], x.shape[1:], x.dtype)
+            for i, x in enumerate(leaves)
+        ]
+        f_all = whole[:, edges[-2] : edges[-1]].reshape(d, n_local, -1)[:, 0, :]
+        f_all = jnp.any(f_all != 0, axis=0)
+        (split_out, rep_out), f_full, m_full = _checks._collect(
+            full_fn, jax.tree.unflatten(treedef, full), rep
+        )
+        i = jax.lax.axis_index(PARTICLE_AXIS)
+        split_out = jax.tree.map(
+            lambda x: jax.lax.dynamic_slice_in_dim(x, i * n_local, n_local, axis=0), split_out
+        )
+        rep_out_arrays, box["static"] = eqx.partition(rep_out, eqx.is_array)
+        box["messages"] = m_local + m_full
+        return split_out, rep_out_arrays, jnp.concatenate([f_all, f_full])
 
-    out, flags = jax.shard_map(
+    split_out, rep_out_arrays, flags = jax.shard_map(
         body,
         mesh=mesh,
-        in_specs=(P(), P(PARTICLE_AXIS), P()),
-        out_specs=(P(PARTICLE_AXIS), P(PARTICLE_AXIS)),
+        in_specs=(P(PARTICLE_AXIS), P()),
+        out_specs=(P(PARTICLE_AXIS), P(), P()),
         check_vma=False,
-    )(arrays, particles, z)
-    return _checks._reattach(out, flags, box.get("messages", ()))
-
-
-def replicated(fn, mesh: Mesh, *args):
-    """``fn(*args)`` computed on the whole (gathered) arrays by every device of ``mesh``
-    under ``jax.shard_map`` with replicated inputs and outputs: exactly the one-device
-    computation (XLA cannot split its reductions into per-shard partial sums). Non-array
-    leaves of ``args`` are static; run-time checks are re-attached at the caller's level."""
-    arrays, static = eqx.partition(args, eqx.is_array)
-    box: dict = {}
-
-    def body(arrays):
-        out, flags, messages = _checks._collect(fn, *eqx.combine(arrays, static))
-        box["messages"] = messages
-        out_arrays, out_static = eqx.partition(out, eqx.is_array)
-        box["static"] = out_static
-        return out_arrays, flags
-
-    out_arrays, flags = jax.shard_map(
-        body, mesh=mesh, in_specs=P(), out_specs=P(), check_vma=False
-    )(arrays)
-    out = eqx.combine(out_arrays, box["static"])
-    return _checks._reattach(out, flags, box.get("messages", ()))
+    )(split_in, rep_arrays)
+    out = (split_out, eqx.combine(rep_out_arrays, box["static"]))
+    return _checks._reattach(out, flags, box["messages"])

@@ -147,7 +147,8 @@ def generic_case():
     sharded = shard_state(state)
     one = pf.run(state, controls, poses[1:, :2])
     two = pf.run(sharded, controls, poses[1:, :2])
-    s1, i1 = eqx.filter_jit(lambda p, s, c, z: p.step(s, c, z))(pf, state, controls[0], poses[1, :2])
+    step = eqx.filter_jit(lambda p, s, c, z: p.step(s, c, z))
+    s1, i1 = step(pf, state, controls[0], poses[1, :2])
     s2, i2 = pf.step(sharded, controls[0], poses[1, :2])
     out["generic"] = {
         "equal": compare(one, two),

@@ -1,7 +1,8 @@
-"""What the experiments share: the process setup (JAX's persistent compilation cache), the
-output folder and its files, table formatting, and the CARMEN protocol of chapters 7 and 8
-(maps from the even-numbered scans at their corrected poses, evaluation on the
-odd-numbered scans) with the five grid models built from it.
+"""What the experiments share: the process setup (JAX's persistent compilation cache, the
+host device count of ``$LIDARJAX_HOST_DEVICES``), the output folder and its files, table
+formatting, and the CARMEN protocol of chapters 7 and 8 (maps from the even-numbered
+scans at their corrected poses, evaluation on the odd-numbered scans) with the five grid
+models built from it.
 
 Every experiment calls :func:`setup` before its first JAX computation, directly or through
 :func:`output_dir` (the first thing each Hydra entry point does after validating its
@@ -34,6 +35,7 @@ from omegaconf import DictConfig, OmegaConf
 
 import lidarjax
 from lidarjax import maps
+from lidarjax.distributed import HOST_DEVICES_ENV, host_devices_from_env, use_host_devices
 from lidarjax.rays import HIT, RayBatch, from_scan
 from lidarjax.raytrace import GridSpec, GridStats, accumulate
 
@@ -75,7 +77,18 @@ def setup() -> Path | None:
     :func:`lidarjax.enable_compilation_cache` with its defaults: ``$LIDARJAX_JAX_CACHE``
     (``off`` disables it) or ``~/.cache/lidarjax/jax-compilation-cache``; ``None`` when
     disabled or not writable (with a warning). Idempotent; :func:`output_dir` calls it.
+
+    With ``$LIDARJAX_HOST_DEVICES=N`` (``lidarjax --host-devices N experiment ...`` sets
+    it), first exposes the CPU as ``N`` JAX devices
+    (:func:`lidarjax.distributed.use_host_devices`; raises ``RuntimeError`` if JAX already
+    started with another count).
     """
+    n = host_devices_from_env()
+    if n is not None:
+        try:
+            use_host_devices(n)
+        except RuntimeError as e:
+            raise RuntimeError(f"${HOST_DEVICES_ENV}={n}: {e}") from None
     return lidarjax.enable_compilation_cache()
 
 

@@ -6,6 +6,10 @@ example. Like ``experiments/``, this is one of the places that know configuratio
 library never imports it. Every computing subcommand turns on JAX's persistent
 compilation cache (:func:`lidarjax.enable_compilation_cache`) first.
 
+``lidarjax --host-devices N COMMAND`` (or ``$LIDARJAX_HOST_DEVICES``) exposes the CPU as
+N JAX devices before JAX starts (:func:`lidarjax.distributed.use_host_devices`), e.g. for
+a particle filter sharded over the cores; ``lidarjax info`` prints the device count.
+
 Exit status: 0 on success, 2 for bad input (a usage error, or a missing or corrupt file:
 one line naming the argument), 1 for other failures (``--debug`` shows the traceback).
 """

@@ -70,8 +70,12 @@ def cmd_info(args) -> int:
     print(f"jaxlib     {jaxlib.__version__}")
     print(f"numpy      {np.__version__}")
     print(f"python     {platform.python_version()} ({platform.machine()})")
-    devices = ", ".join(f"{d.platform}:{d.id}" for d in jax.devices())
-    print(f"devices    {devices} (default backend: {jax.default_backend()})")
+    devs = jax.devices()
+    devices = ", ".join(f"{d.platform}:{d.id}" for d in devs)
+    count = f"{len(devs)} device{'s' if len(devs) != 1 else ''}"
+    print(f"devices    {devices} ({count}, default backend: {jax.default_backend()})")
+    if jax.process_count() > 1:
+        print(f"processes  {jax.process_count()} (this is process {jax.process_index()})")
     x64 = bool(jax.config.jax_enable_x64)
     print(f"x64        {x64} (default float{64 if x64 else 32})")
     print("native kernels (C++ through the XLA FFI):")

@@ -99,6 +99,14 @@ def cmd_localize(args) -> int:
     scan_model = loc.ScanModel(model, az, r_min, r_max, ray_floor=RAY_FLOOR)
     pf = loc.ParticleFilter(motion, scan_model)
     state = loc.init_gaussian(int(args.particles), mean, std, key=jax.random.key(int(args.seed)))
+    n_dev = len(jax.devices())
+    if n_dev > 1:  # e.g. --host-devices: the same results, the scans measured per device
+        if args.particles % n_dev == 0:
+            state = loc.shard_state(state)
+            print(f"particles split over {n_dev} devices")
+        else:
+            print(f"note: {args.particles} particles not split over the {n_dev} devices "
+                  f"(use a multiple of {n_dev})")  # fmt: skip
 
     n_steps = len(controls)
     est, degenerate = [], 0

@@ -8,10 +8,12 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 import textwrap
 from collections.abc import Sequence
 
+from ..distributed import HOST_DEVICES_ENV
 from ._inputs import CliInputError
 
 __all__ = ["build_parser", "main"]
@@ -81,6 +83,14 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--debug", action="store_true", help="show the full traceback of any error")
     parser.add_argument(
         "--x64", action="store_true", help="compute in float64 (JAX's default is float32)"
+    )
+    parser.add_argument(
+        "--host-devices",
+        type=int,
+        metavar="N",
+        help="expose the CPU as N JAX devices (XLA's host device count, set before JAX "
+        "starts; sharded particle filters split over them; also passed on to `lidarjax "
+        f"experiment`); default: ${HOST_DEVICES_ENV}, else JAX's default (one)",
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
 
@@ -190,6 +200,9 @@ def build_parser() -> argparse.ArgumentParser:
         3x4 poses), and, when the log has ground truth (the corrected poses of a CARMEN
         log, tf in a bag), errors.png (position and heading error over time) and
         errors.json, and prints the ATE (RMSE of the position error, no alignment).
+        With several JAX devices (`lidarjax --host-devices N localize ...`, or GPUs) the
+        particles are split over them when their count is a multiple of the device count
+        (the same results, each device measuring its own particles).
         """,
         "lidarjax localize out/intel/map.npz intel -o out/loc --scans 1:400:2 --particles 500\n"
         "  lidarjax localize map.npz intel -o out/loc2 --init 1.2,-0.4,0.3",
@@ -339,6 +352,30 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _host_devices(n: int | None) -> None:
+    """Expose ``n`` CPU devices (``--host-devices``, else ``$LIDARJAX_HOST_DEVICES``)
+    before the subcommand imports JAX (:func:`lidarjax.distributed.use_host_devices`); a
+    bad value is an input error naming its source."""
+    from ..distributed import host_devices_from_env, use_host_devices
+
+    argument = "--host-devices"
+    if n is None:
+        argument = f"${HOST_DEVICES_ENV}"
+        try:
+            n = host_devices_from_env()
+        except ValueError as e:
+            raise CliInputError(argument, str(e).removeprefix(f"{argument} ")) from None
+        if n is None:
+            return
+    if n < 1:
+        raise CliInputError(argument, f"must be >= 1, got {n}")
+    try:
+        use_host_devices(n)
+    except RuntimeError as e:
+        raise CliInputError(argument, str(e)) from None
+    os.environ[HOST_DEVICES_ENV] = str(n)  # `lidarjax experiment`'s process: the same count
+
+
 def _error(command: str | None, message: str) -> None:
     where = f"{PROG} {command}" if command else PROG
     print(f"{where}: error: {message}", file=sys.stderr)
@@ -362,6 +399,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return int(e.code or 0) if not isinstance(e.code, str) else 2
     module, func = args.handler.split(":")
     try:
+        _host_devices(args.host_devices)
         if args.x64:
             import jax
 

@@ -103,6 +103,13 @@ def shard_state(state: ParticleState, mesh: Mesh | None = None) -> ParticleState
     output states are sharded the same way, and their results equal the one-device
     results for the same key bitwise (see the module docstring).
 
+    Several processes (after ``jax.distributed.initialize``, e.g.
+    :func:`lidarjax.distributed.initialize_cpu`): the default mesh spans the devices of
+    every process; each process calls this with the same state (the same initialiser and
+    key) and keeps the rows of its own devices. The results are global arrays: replicated
+    ones (key, counters, the run's ``StepInfo``) read in any process, the particles by
+    their ``addressable_shards``.
+
     Args:
         state: an unbatched state (``[n]`` particles).
         mesh: a 1-D mesh with axis ``"particles"`` (default :func:`particle_mesh`: all
@@ -131,9 +138,22 @@ def shard_state(state: ParticleState, mesh: Mesh | None = None) -> ParticleState
         )
     split = NamedSharding(mesh, P(PARTICLE_AXIS))
     whole = NamedSharding(mesh, P())
-    return _particle_leaves_map(
-        lambda x: jax.device_put(x, split), lambda x: jax.device_put(x, whole), state
-    )
+    return _particle_leaves_map(lambda x: _place(x, split), lambda x: _place(x, whole), state)
+
+
+def _place(x, sharding: NamedSharding):
+    """``x`` placed with ``sharding``. One process: ``jax.device_put``. Several processes
+    (a mesh with other processes' devices, after ``jax.distributed.initialize``): every
+    process holds the whole, identical ``x`` (e.g. drawn from the same key) and puts the
+    rows of its own devices from a host copy; an array already global is resharded."""
+    if sharding.is_fully_addressable:
+        return jax.device_put(x, sharding)
+    if isinstance(x, jax.Array) and not x.is_fully_addressable:
+        return x if x.sharding == sharding else jax.jit(lambda a: a, out_shardings=sharding)(x)
+    if jnp.issubdtype(x.dtype, jax.dtypes.prng_key):
+        data = _place(jax.random.key_data(x), sharding)
+        return jax.random.wrap_key_data(data, impl=jax.random.key_impl(x))
+    return jax.device_put(np.asarray(x), sharding)
 
 
 def state_mesh(state: ParticleState) -> Mesh | None:

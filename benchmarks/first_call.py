@@ -34,8 +34,10 @@ loads the executables instead of compiling them. Measured here:
 The load average is recorded before every process and every call (a first call cannot be
 repeated in the same process, so there is no rerun policy; rerun the script when the
 machine was busy). Run with ``python benchmarks/first_call.py [--quick] [--out PATH]
-[--min-compile-time S ...]``; results go to ``benchmarks/results/first_call.json`` and a
-Markdown table is printed.
+[--min-compile-time S ...] [--items NAME ...]``; results go to
+``benchmarks/results/first_call.json`` and a Markdown table is printed. ``--items dct_fit``
+(for example) times one workload alone (the others are skipped, so nothing they compile or
+load is shared with it).
 """
 
 from __future__ import annotations
@@ -264,17 +266,20 @@ def worker(args) -> dict:
         dm = maps.decay_rate_map(accumulate(spec, rays))
         return log_likelihood_at_poses(dm, az, ranges[20], at, r_min=0.05, r_max=10.0)
 
-    items["decay_rate_map"] = _timed(events, decay)
+    selected = set(args.items)
+    if "decay_rate_map" in selected:
+        items["decay_rate_map"] = _timed(events, decay)
 
-    dm = maps.decay_rate_map(accumulate(spec, rays))
-    pf = ParticleFilter(
-        OdometryMotionModel([0.03, 0.03, 0.01], inflation=2.0),
-        ScanModel(dm, az[::4], 0.05, 10.0, ray_floor=-10.0),
-    )
-    controls = np.asarray(relative_motion(poses))
-    zs = ranges[1:, ::4]
-    state = init_gaussian(200, poses[0], [0.1, 0.1, 0.05], key=jax.random.key(0))
-    items["particle_filter_run"] = _timed(events, lambda: pf.run(state, controls, zs))
+    if "particle_filter_run" in selected:
+        dm = maps.decay_rate_map(accumulate(spec, rays))
+        pf = ParticleFilter(
+            OdometryMotionModel([0.03, 0.03, 0.01], inflation=2.0),
+            ScanModel(dm, az[::4], 0.05, 10.0, ray_floor=-10.0),
+        )
+        controls = np.asarray(relative_motion(poses))
+        zs = ranges[1:, ::4]
+        state = init_gaussian(200, poses[0], [0.1, 0.1, 0.05], key=jax.random.key(0))
+        items["particle_filter_run"] = _timed(events, lambda: pf.run(state, controls, zs))
 
     flat = rays.flatten()
     ends = np.asarray(flat.endpoints())
@@ -288,29 +293,35 @@ def worker(args) -> dict:
         flat.r_min,
         flat.r_max,
     )
-    items["dct_fit"] = _timed(
-        events,
-        lambda: maps.fit_dct(sub, (8, 8), lower=[2.0, 2.0], extent=[6.0, 6.0], max_steps=30)[0],
-    )
+    # the ray selection above is NumPy work on device arrays: finished before the timer
+    jax.block_until_ready(sub)
+    if "dct_fit" in selected:
+        items["dct_fit"] = _timed(
+            events,
+            lambda: maps.fit_dct(sub, (8, 8), lower=[2.0, 2.0], extent=[6.0, 6.0], max_steps=30)[0],
+        )
 
     polygon = random_polygon(7, seed=2, radius_range_m=(2.0, 6.0))
     a_poly, r_poly = simulate_polygon_scan(polygon, n_rays=180, seed=2)
     prays = from_scan(jaxlie.SE2.identity(), a_poly, r_poly, 0.0, np.inf)
-    items["extract_polylines"] = _timed(
-        events, lambda: features.extract_polylines(prays, max_vertices=12).stats
-    )
+    if "extract_polylines" in selected:
+        items["extract_polylines"] = _timed(
+            events, lambda: features.extract_polylines(prays, max_vertices=12).stats
+        )
 
     pts = synpeb_scan("train", 0, shape=(32, 32)).points
-    items["extract_planes"] = _timed(
-        events, lambda: jnp.asarray(features.extract_planes(pts).labels)
-    )
+    if "extract_planes" in selected:
+        items["extract_planes"] = _timed(
+            events, lambda: jnp.asarray(features.extract_planes(pts).labels)
+        )
 
     crays = _cylinder_rays()
     pcfg = features.PoleConfig(extent_m=(20.0, 20.0, 4.0), max_poles=16)
     pspec = features.local_map_spec([0.5, 0.0], pcfg)
-    items["extract_poles"] = _timed(
-        events, lambda: jnp.asarray(features.extract_poles(crays, pspec, pcfg).xy)
-    )
+    if "extract_poles" in selected:
+        items["extract_poles"] = _timed(
+            events, lambda: jnp.asarray(features.extract_poles(crays, pspec, pcfg).xy)
+        )
 
     out["items"] = items
     out["first_calls_total_s"] = sum(v["first_call_s"] for v in items.values())
@@ -399,7 +410,7 @@ def markdown(rep: dict) -> str:
             "|---|---|---|---|",
         ]
         a, b = pair["first_process"]["items"], pair["second_process"]["items"]
-        for k in ITEMS:
+        for k in (k for k in ITEMS if k in a):
             x, y = a[k], b[k]
             lines.append(
                 f"| {k} | {_f(x['first_call_s'])} ({x['backend_compiles']}) | "
@@ -410,7 +421,7 @@ def markdown(rep: dict) -> str:
             f"| all first calls | {_f(pair['first_process']['first_calls_total_s'])} | "
             f"{_f(pair['second_process']['first_calls_total_s'])} | |"
         )
-        for k in ITEMS:  # never cached, whatever the threshold
+        for k in (k for k in ITEMS if k in a):  # never cached, whatever the threshold
             names = sorted({m.split("'")[1] for m in a[k]["not_written"] if "callback" in m})
             if names:
                 lines.append(f"\n- {k}: not cacheable (host callbacks): {', '.join(names)}")
@@ -442,6 +453,13 @@ def main(argv=None) -> dict:
         help="cache thresholds to compare (s); 1.0 is JAX's default",
     )
     ap.add_argument("--no-x64", dest="x64", action="store_false", help="float32 (JAX default)")
+    ap.add_argument(
+        "--items",
+        nargs="+",
+        choices=ITEMS,
+        default=list(ITEMS),
+        help="workloads to time (default: all; others are skipped, e.g. to time one alone)",
+    )
     ap.add_argument("--worker", choices=("calls", "buckets"), help=argparse.SUPPRESS)
     ap.add_argument("--cache", type=Path, help=argparse.SUPPRESS)
     ap.add_argument("--result", type=Path, help=argparse.SUPPRESS)
@@ -455,7 +473,7 @@ def main(argv=None) -> dict:
 
     t_start = time.perf_counter()
     thresholds = [0.0] if args.quick else list(args.min_compile_time)
-    common = [] if args.x64 else ["--no-x64"]
+    common = ([] if args.x64 else ["--no-x64"]) + ["--items", *args.items]
     pairs = []
     for t in thresholds:
         with tempfile.TemporaryDirectory(prefix="lidarjax-first-call-") as cache:

@@ -17,12 +17,15 @@ from lidarjax.localization import to_vector
 from lidarjax.localization.refine import refine_dct_scan_pose
 from lidarjax.maps import (
     DCTMap,
+    dct_from_grid,
     dct_grid_initial_map,
     dct_log_likelihood,
     dct_objective,
+    decay_rate_map,
     fit_dct,
 )
 from lidarjax.rays import HIT, SUB, SUP, RayBatch, from_scan
+from lidarjax.raytrace import GridSpec, accumulate
 
 
 def np_amplitude(coeffs, lower, extent, pts):
@@ -103,6 +106,114 @@ def test_objective_equals_sum_of_log_likelihoods(sim_rays):
         v, g, v_ref, g_ref = both(jnp.asarray(a))
         assert float(v) == pytest.approx(float(v_ref), rel=1e-9)
         np.testing.assert_allclose(np.asarray(g), np.asarray(g_ref), rtol=1e-9, atol=1e-9)
+
+
+def first_rays(rays, n):
+    return jax.tree.map(lambda x: x[:n] if x.ndim else x, rays)
+
+
+def test_ray_bucket():
+    assert [fit_module.ray_bucket(n) for n in (0, 1, 64, 65, 150, 2000, 2049, 2500)] == [
+        0,
+        64,
+        64,
+        80,
+        160,
+        2048,
+        2560,
+        2560,
+    ]
+    assert fit_module.ray_bucket(3, minimum=16) == 16
+    ns = np.arange(1, 20000)
+    b = np.array([fit_module.ray_bucket(n) for n in ns])
+    assert np.all(b >= ns) and np.all(np.diff(b) >= 0)
+    assert np.all(b[ns >= 64] <= 1.25 * ns[ns >= 64])  # at most 25 % padding
+    assert len(np.unique(b)) < 60  # few buckets, hence few compiled programs
+    with pytest.raises(ValueError, match="n must be"):
+        fit_module.ray_bucket(-1)
+
+
+def test_bucketed_setup_matches_unpadded_objective(sim_rays):
+    """fit_dct's set-up pads the rays to a shape bucket (one program for many inputs): its
+    objective equals the unpadded :func:`dct_objective` (value and gradient, float64), its
+    padding contributes exactly zero, and its initial map is the grid initial map of the
+    unpadded rays."""
+    rays = first_rays(sim_rays, 150)
+    counts = rays.counts()
+    assert min(counts.values()) >= 5, counts
+    shape = (4, 4)
+    obj = dct_objective(rays, LOWER, EXTENT, shape)
+    pobj, a0 = fit_module._bucketed_setup(rays, shape, LOWER, EXTENT, initial=True)
+    n_pad = fit_module.ray_bucket(150)
+    assert n_pad > 150  # padded rays are present
+    assert pobj.hit_points.shape == (n_pad, 2) and int(pobj.hit_mask.sum()) == counts["HIT"]
+    assert pobj.w_sub.shape[0] == fit_module.ray_bucket(counts["SUB"], minimum=16)
+    assert pobj.w_sub.shape[0] > counts["SUB"] and int(pobj.sub_mask.sum()) == counts["SUB"]
+    assert float(pobj.n_rays) == obj.n_rays == 150
+    np.testing.assert_allclose(np.asarray(pobj.w_free), np.asarray(obj.w_free), rtol=1e-12)
+
+    # garbage in the padded rows changes nothing, bit for bit
+    rng = np.random.default_rng(5)
+    spoiled = eqx.tree_at(
+        lambda o: (o.hit_points, o.w_sub),
+        pobj,
+        (
+            jnp.where(pobj.hit_mask[:, None], pobj.hit_points, rng.normal(size=(n_pad, 2))),
+            jnp.where(
+                pobj.sub_mask[:, None, None],
+                pobj.w_sub,
+                jnp.asarray(rng.uniform(-1.0, 1.0, pobj.w_sub.shape)),
+            ),
+        ),
+    )
+    ev = jax.jit(lambda a: tuple(x for o in (obj, pobj, spoiled) for x in (o(a), jax.grad(o)(a))))
+    for _ in range(3):
+        a = 0.3 * rng.normal(size=shape)
+        a[0, 0] = rng.uniform(0.5, 1.5)
+        v, g, pv, pg, sv, sg = ev(jnp.asarray(a))
+        assert float(pv) == pytest.approx(float(v), rel=1e-12)
+        np.testing.assert_allclose(np.asarray(pg), np.asarray(g), rtol=1e-10, atol=1e-12)
+        assert float(sv) == float(pv) and np.array_equal(np.asarray(sg), np.asarray(pg))
+
+    # the initial map of the set-up: the grid ML map (Eq. 7.10) of the unpadded rays
+    grid = decay_rate_map(accumulate(GridSpec(LOWER, 0.75, (8, 8)), rays))
+    ref = dct_from_grid(grid, shape, max_rate=20.0)
+    np.testing.assert_allclose(np.asarray(a0), np.asarray(ref.coeffs), rtol=1e-12, atol=1e-14)
+    init = dct_grid_initial_map(rays, LOWER, EXTENT, shape)
+    np.testing.assert_allclose(np.asarray(init.coeffs), np.asarray(ref.coeffs), rtol=1e-12)
+    np.testing.assert_allclose(np.asarray(init.extent), EXTENT, rtol=1e-15)
+
+
+def test_fit_compiles_once_per_ray_bucket(sim_rays):
+    """Two ray sets of different sizes in one bucket (total and SUB rays) run the same two
+    compiled programs (set-up and solve); the fit equals the unpadded solve."""
+    a, b = first_rays(sim_rays, 130), first_rays(sim_rays, 150)
+    sub_a, sub_b = a.counts()["SUB"], b.counts()["SUB"]
+    assert fit_module.ray_bucket(130) == fit_module.ray_bucket(150)
+    assert fit_module.ray_bucket(sub_a, minimum=16) == fit_module.ray_bucket(sub_b, minimum=16)
+    init = DCTMap(TRUE_COEFFS[:3, :2], LOWER, EXTENT)  # a shape no other test fits
+
+    def sizes():  # programs in the in-memory caches of the two jitted functions
+        setup = fit_module._setup.program._cached  # checked_jit -> eqx.filter_jit -> jax.jit
+        return setup._cache_size(), fit_module._minimise._cached._cache_size()
+
+    before = sizes()
+    m_a, _ = fit_dct(a, init=init, max_steps=6)
+    after_a = sizes()
+    m_b, sol_b = fit_dct(b, init=init, max_steps=6)
+    assert sizes() == after_a == (before[0] + 1, before[1] + 1)
+    assert not np.allclose(np.asarray(m_a.coeffs), np.asarray(m_b.coeffs))
+    # another bucket compiles again (the count above is not blind)
+    fit_dct(first_rays(sim_rays, 170), init=init, max_steps=6)
+    assert sizes() == (before[0] + 2, before[1] + 2)
+
+    # the same solve without padding (the objective of dct_objective)
+    solver = optx.LBFGS(rtol=1e-3, atol=1e-3)
+    ref = fit_module._minimise(
+        dct_objective(b, LOWER, EXTENT, (3, 2)), solver, init.coeffs, 6, False
+    )
+    assert int(sol_b.stats["num_steps"]) == int(ref.stats["num_steps"])
+    np.testing.assert_allclose(np.asarray(m_b.coeffs), np.asarray(ref.value), rtol=1e-8, atol=1e-10)
 
 
 # --------------------------------------------------------------------------------------

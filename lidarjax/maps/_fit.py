@@ -18,6 +18,14 @@ log-likelihood below 1e-3, applied by optimistix's Cauchy test to the per-ray me
 start: from the paper's one-cell-per-coefficient grid DCT some HIT end points have
 ``f ~ 0``, L-BFGS crawls and the rule stopped after 13 steps on 1e4 Intel rays, so the
 default start projects a 2x finer grid (:func:`grid_initial_map`).
+
+Compile once per shape bucket (issue #25): :func:`fit_dct` selects and pads the rays on
+the host (NumPy) and runs its whole set-up (summed weights, SUB weights, HIT end points, the
+box check and the grid initial map) as ONE jitted program over ``ray_bucket(n)`` rays
+(padding rays are masked out and contribute exactly zero), then one jitted solve whose
+inputs have the bucketed shapes and whose ray count is a traced scalar. Inputs with other
+ray counts in the same bucket reuse both compiled programs, and a second process loads
+two programs from the persistent cache instead of tracing ~65 small eager ones.
 """
 
 from __future__ import annotations
@@ -30,6 +38,7 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
+from .._checks import checked_jit
 from .._math import log1mexp
 from ..rays import HIT, SUB, SUP, RayBatch
 from ..raytrace import GridSpec, accumulate, pad_to_chunks
@@ -45,7 +54,7 @@ from ._dct import (
 )
 from ._grid import decay_rate_map
 
-__all__ = ["DCTObjective", "dct_objective", "fit_dct", "grid_initial_map"]
+__all__ = ["DCTObjective", "dct_objective", "fit_dct", "grid_initial_map", "ray_bucket"]
 
 
 class DCTObjective(eqx.Module):
@@ -69,13 +78,47 @@ class DCTObjective(eqx.Module):
     n_rays: int = eqx.field(static=True)
 
     def __call__(self, coeffs: jax.Array) -> jax.Array:
-        c = dct_spectrum(coeffs)
-        f = _amplitude(coeffs, self.hit_points)
-        f2 = f * f
-        pos = f2 > 0
-        log_lam = jnp.where(pos, jnp.log(jnp.where(pos, f2, 1.0)), -jnp.inf)
-        depth_sub = jnp.tensordot(self.w_sub, c, axes=c.ndim)
-        return jnp.sum(log_lam) - jnp.sum(self.w_free * c) + jnp.sum(log1mexp(depth_sub))
+        return _total_log_likelihood(coeffs, self.w_free, self.w_sub, self.hit_points)
+
+
+def _total_log_likelihood(coeffs, w_free, w_sub, hit_points, sub_mask=None, hit_mask=None):
+    """Sum of the rays' log-likelihoods (nats) from the precomputed terms; rows of
+    ``w_sub`` / ``hit_points`` whose mask is False (padding) contribute exactly 0 to the
+    value and the gradient."""
+    c = dct_spectrum(coeffs)
+    f = _amplitude(coeffs, hit_points)
+    f2 = f * f
+    pos = f2 > 0
+    log_lam = jnp.where(pos, jnp.log(jnp.where(pos, f2, 1.0)), -jnp.inf)
+    depth_sub = jnp.tensordot(w_sub, c, axes=c.ndim)
+    if hit_mask is not None:
+        log_lam = jnp.where(hit_mask, log_lam, 0.0)
+    if sub_mask is None:
+        log_sub = log1mexp(depth_sub)
+    else:
+        log_sub = jnp.where(sub_mask, log1mexp(jnp.where(sub_mask, depth_sub, 1.0)), 0.0)
+    return jnp.sum(log_lam) - jnp.sum(w_free * c) + jnp.sum(log_sub)
+
+
+class _BucketedObjective(eqx.Module):
+    """:class:`DCTObjective` over rays padded to a shape bucket (built by :func:`_setup`):
+    ``hit_points [nb d]`` of every (padded) ray with ``hit_mask [nb]`` (True for real HIT
+    rays), ``w_sub [ns *spectrum]`` with ``sub_mask [ns]``, and the real ray count
+    ``n_rays`` as a traced scalar, so inputs of one bucket share the solver's program."""
+
+    lower: jax.Array
+    extent: jax.Array
+    w_free: jax.Array
+    w_sub: jax.Array
+    sub_mask: jax.Array
+    hit_points: jax.Array
+    hit_mask: jax.Array
+    n_rays: jax.Array
+
+    def __call__(self, coeffs: jax.Array) -> jax.Array:
+        return _total_log_likelihood(
+            coeffs, self.w_free, self.w_sub, self.hit_points, self.sub_mask, self.hit_mask
+        )
 
 
 @functools.partial(jax.jit, static_argnames=("shape", "chunk_size", "method"))
@@ -222,6 +265,92 @@ def _chunked_stack(probe, flat, idx, length, chunk_size, spec_shape):
     return jnp.concatenate(out, axis=0)
 
 
+MIN_RAY_BUCKET = 64
+"""The smallest number of rays :func:`fit_dct` compiles its set-up and solve for."""
+
+
+def ray_bucket(n: int, *, minimum: int = MIN_RAY_BUCKET) -> int:
+    """The number of rays :func:`fit_dct` pads ``n`` rays to: the smallest ``m 2^k >= n``
+    with ``m`` in 4..7 (quarter-octave steps, so at most 25 % of the rays are padding), at
+    least ``minimum``; ``0`` stays ``0``. E.g. 2000 -> 2048, 2100 and 2500 -> 2560, 150 ->
+    160. Every bucket compiles its own programs; inputs of one bucket share them."""
+    n = int(n)
+    if n < 0:
+        raise ValueError(f"n must be >= 0, got {n}")
+    if n == 0:
+        return 0
+    n = max(n, int(minimum))
+    k = max(n.bit_length() - 3, 0)  # n / 2^k in [4, 8)
+    return -(-n // (1 << k)) << k
+
+
+def _host_rays(rays: RayBatch) -> tuple[np.ndarray, ...]:
+    """Flattened ``origins, directions, ranges, kind`` as NumPy arrays (no device op)."""
+    d = rays.dim
+    return (
+        np.asarray(rays.origins).reshape(-1, d),
+        np.asarray(rays.directions).reshape(-1, d),
+        np.asarray(rays.ranges).reshape(-1),
+        np.asarray(rays.kind).reshape(-1),
+    )
+
+
+def _padded(rays: RayBatch, arrays, n_pad: int) -> tuple[RayBatch, np.ndarray]:
+    """``arrays`` (``origins, directions, ranges, kind``, ``[n ...]``) padded with inert
+    rays to ``n_pad``: SUB rays of range 0 from the origin along the first axis, which the
+    grid statistics ignore; the masks of :func:`_setup` remove them from every other term.
+    Returns the batch (with the limits of ``rays``) and ``valid [n_pad]`` (True for the
+    real rays)."""
+    o, dr, r, k = arrays
+    n, d = o.shape
+    pad = n_pad - n
+    e0 = np.zeros((pad, d), dr.dtype)
+    e0[:, 0] = 1.0
+    out = RayBatch._trusted(
+        np.concatenate([o, np.zeros((pad, d), o.dtype)]),
+        np.concatenate([dr, e0]),
+        np.concatenate([r, np.zeros(pad, r.dtype)]),
+        np.concatenate([k, np.full(pad, SUB, k.dtype)]),
+        rays.r_min,
+        rays.r_max,
+    )
+    return out, np.arange(n_pad) < n
+
+
+def _box(lower, extent, d: int, dtype) -> tuple[np.ndarray, np.ndarray]:
+    """The map box as NumPy arrays of ``dtype``, checked as :class:`DCTMap` checks it."""
+    lower, extent = np.asarray(lower, dtype), np.asarray(extent, dtype)
+    if lower.shape != (d,) or extent.shape != (d,):
+        raise ValueError(
+            f"lower and extent must have shape ({d},) for {d}-D coeffs, got "
+            f"{lower.shape} and {extent.shape}"
+        )
+    if not np.all(extent > 0):
+        raise ValueError(f"extent must be positive on every axis, got {extent}")
+    return lower, extent
+
+
+def _grid_spec(lower, extent, shape: tuple[int, ...], oversample: int) -> GridSpec:
+    """The grid of :func:`grid_initial_map` (``ValueError`` for non-square cells)."""
+    if not isinstance(oversample, int) or oversample < 1:
+        raise ValueError(f"oversample must be a positive int, got {oversample!r}")
+    ext = np.asarray(extent, float)
+    res = ext / (oversample * np.asarray(shape, float))
+    if not np.allclose(res, res[0], rtol=1e-9):
+        raise ValueError(
+            f"extent {ext} / shape {tuple(shape)} gives non-square cells {res}; the grid "
+            "initialisation needs square cells (pass init= instead)"
+        )
+    return GridSpec(np.asarray(lower, float), float(res[0]), tuple(oversample * s for s in shape))
+
+
+def _initial_map(spec: GridSpec, rays: RayBatch, shape, max_rate) -> DCTMap:
+    return from_grid(decay_rate_map(accumulate(spec, rays)), tuple(shape), max_rate=max_rate)
+
+
+_initial_map_program = checked_jit(_initial_map)
+
+
 def grid_initial_map(
     rays: RayBatch,
     lower,
@@ -240,19 +369,122 @@ def grid_initial_map(
     global ML rate; rates are clipped at ``max_rate`` (1/m).
 
     The box must be split into square cells: ``extent / shape`` equal on every axis.
+    Computed as one jitted program over the rays padded to :func:`ray_bucket` rays (the
+    padding is ignored by the grid statistics).
     """
-    if not isinstance(oversample, int) or oversample < 1:
-        raise ValueError(f"oversample must be a positive int, got {oversample!r}")
-    ext = np.asarray(extent, float)
-    res = ext / (oversample * np.asarray(shape, float))
-    if not np.allclose(res, res[0], rtol=1e-9):
+    if not isinstance(rays, RayBatch):
+        raise ValueError(f"rays must be a RayBatch, got {type(rays).__name__}")
+    shape = tuple(int(s) for s in shape)
+    spec = _grid_spec(lower, extent, shape, oversample)
+    if rays.dim != spec.dim:
+        raise ValueError(f"rays are {rays.dim}-D but spec is a {spec.dim}-D grid")
+    arrays = _host_rays(rays)
+    n = arrays[2].shape[0]
+    if n == 0:
+        raise ValueError("rays is empty")
+    padded, _ = _padded(rays, arrays, ray_bucket(n))
+    return _initial_map_program(spec, padded, shape, max_rate)
+
+
+def _sub_weights(probe: DCTMap, sub: RayBatch, sub_valid, chunk_size: int):
+    """``[ns *spectrum]`` weights of the (padded) SUB rays; zero rows for the padding."""
+    spec_shape = tuple(2 * n - 1 for n in probe.shape)
+
+    def one(x):
+        o, d, r, u = x
+        st, vt, ell = _segment(probe, o, d, r)
+        return jnp.where(u, ray_weights(spec_shape, st, vt, ell), 0.0)
+
+    xs = (sub.origins, sub.directions, sub.model_lengths(), sub_valid)
+    return jax.lax.map(one, xs, batch_size=min(chunk_size, sub.ranges.shape[0]))
+
+
+@checked_jit
+def _setup(
+    shape, lower, extent, rays, valid, sub, sub_valid, n_rays, spec, chunk_size, method, max_rate
+):
+    """The whole set-up of :func:`fit_dct` as one program over padded rays: the bucketed
+    objective, the number of real rays without evidence in the box, and the coefficients
+    of :func:`grid_initial_map` (``spec`` given) or ``None``."""
+    dtype = rays.origins.dtype
+    probe = DCTMap(jnp.zeros(shape, dtype), lower, extent)
+    length = rays.model_lengths()
+    use = ((rays.kind == HIT) | (rays.kind == SUP)) & valid
+    w_free = _weights(
+        probe, rays.origins, rays.directions, length, use, probe.shape, chunk_size, method
+    )
+    if sub is None:
+        w_sub = jnp.zeros((0,) + w_free.shape, dtype)
+        sub_valid = jnp.zeros((0,), bool)
+    else:
+        w_sub = _sub_weights(probe, sub, sub_valid, chunk_size)
+    ends = rays.origins + rays.ranges[:, None] * rays.directions
+    obj = _BucketedObjective(
+        lower=probe.lower,
+        extent=probe.extent,
+        w_free=w_free,
+        w_sub=w_sub,
+        sub_mask=sub_valid,
+        hit_points=probe.normalized(ends),
+        hit_mask=(rays.kind == HIT) & valid,
+        n_rays=jnp.asarray(n_rays, dtype),
+    )
+    n_outside = jnp.sum(valid & ~rays_in_box(probe, rays))
+    a0 = None
+    if spec is not None:
+        a0 = _initial_map(spec, rays, shape, max_rate).coeffs.astype(dtype)
+    return obj, n_outside, a0
+
+
+def _bucketed_setup(
+    rays: RayBatch, shape, lower, extent, *, initial: bool, chunk_size: int = 256
+) -> tuple[_BucketedObjective, jax.Array | None]:
+    """Check the inputs, select and pad the rays on the host (NumPy) and run
+    :func:`_setup`: the bucketed objective and, with ``initial``, the coefficients of
+    :func:`grid_initial_map` (else ``None``)."""
+    if not isinstance(rays, RayBatch):
+        raise ValueError(f"rays must be a RayBatch, got {type(rays).__name__}")
+    shape = tuple(int(s) for s in shape)
+    if len(shape) != rays.dim or any(s < 1 for s in shape):
+        raise ValueError(f"shape must be {rays.dim} positive ints, got {shape}")
+    if not isinstance(chunk_size, int) or chunk_size <= 0:
+        raise ValueError(f"chunk_size must be a positive int, got {chunk_size!r}")
+    arrays = _host_rays(rays)
+    n = arrays[2].shape[0]
+    if n == 0:
+        raise ValueError("rays is empty")
+    dtype = arrays[0].dtype
+    spec = _grid_spec(lower, extent, shape, 2) if initial else None
+    lower, extent = _box(lower, extent, rays.dim, dtype)
+    padded, valid = _padded(rays, arrays, ray_bucket(n))
+    sub_idx = np.flatnonzero(arrays[3] == SUB)
+    sub, sub_valid = None, None
+    if sub_idx.size:
+        sub_arrays = tuple(a[sub_idx] for a in arrays)
+        # SUB rays are few (often none): their own, smaller bucket
+        sub, sub_valid = _padded(rays, sub_arrays, ray_bucket(sub_idx.size, minimum=16))
+    obj, n_outside, a0 = _setup(
+        shape,
+        lower,
+        extent,
+        padded,
+        valid,
+        sub,
+        sub_valid,
+        np.asarray(n, dtype),
+        spec,
+        chunk_size,
+        "spectral",
+        20.0,
+    )
+    n_outside = int(n_outside)
+    if n_outside:
         raise ValueError(
-            f"extent {ext} / shape {tuple(shape)} gives non-square cells {res}; the grid "
-            "initialisation needs square cells (pass init= instead)"
+            f"rays: {n_outside} of {n} rays carry no evidence inside the map "
+            "box (HIT end point outside it, or the ray misses it); select rays with "
+            "lidarjax.maps.rays_in_box"
         )
-    spec = GridSpec(np.asarray(lower, float), float(res[0]), tuple(oversample * s for s in shape))
-    grid = decay_rate_map(accumulate(spec, rays))
-    return from_grid(grid, tuple(shape), max_rate=max_rate)
+    return obj, a0
 
 
 def fit_dct(
@@ -273,7 +505,9 @@ def fit_dct(
 
     Maximises ``sum_k log p(z_k | A)`` over the coefficients ``A`` (minimising the negative
     mean per ray, so the tolerances are scale-free) with optimistix, starting from ``init``
-    or from :func:`grid_initial_map`.
+    or from :func:`grid_initial_map`. The rays are padded to :func:`ray_bucket` rays (the
+    SUB rays to their own bucket), so another ray count in the same bucket compiles
+    nothing new (module docstring); the padding contributes exactly zero.
 
     Args:
         rays: mapping rays, all with evidence inside the box.
@@ -301,13 +535,13 @@ def fit_dct(
         lower, extent = init.lower, init.extent
     if shape is None or lower is None or extent is None:
         raise ValueError("pass shape, lower and extent, or an init map")
-    shape = tuple(int(s) for s in shape)
-    obj = dct_objective(rays, lower, extent, shape, chunk_size=chunk_size)
-    if init is None:
-        init = grid_initial_map(rays, lower, extent, shape)
+    obj, a0 = _bucketed_setup(
+        rays, shape, lower, extent, initial=init is None, chunk_size=chunk_size
+    )
+    if a0 is None:
+        a0 = jnp.asarray(init.coeffs, obj.w_free.dtype)
     if solver is None:
         solver = optx.LBFGS(rtol=rtol, atol=atol)
-    a0 = jnp.asarray(init.coeffs, obj.w_free.dtype)
     sol = _minimise(obj, solver, a0, max_steps, throw)
     return DCTMap(sol.value, obj.lower, obj.extent), sol
 

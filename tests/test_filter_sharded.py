@@ -23,7 +23,7 @@ from lidarjax.localization import init_gaussian, particle_mesh, shard_state
 ROOT = Path(__file__).resolve().parents[1]
 
 SCRIPT = r"""
-import json, re, sys
+import json, os, re, sys
 import numpy as np
 import equinox as eqx
 import jax, jax.numpy as jnp
@@ -124,6 +124,8 @@ def case(name, backend, n, x64, **kw):
             r["fold_calls"] = text.count("lidarjax_fold_")
             r["fold_local_rows"] = text.count(f"tensor<{n // 2 * n_b}x")
             r["fold_global_rows"] = text.count(f"tensor<{n * n_b}x")
+            r["fold_threads"] = sorted(set(re.findall(r"threads = (\d+) : i64", text)))
+            r["cores"] = len(os.sched_getaffinity(0))
             # the compiled program (after XLA's partitioning): its collectives
             hlo = type(pf)._run_padded.program.lower(
                 pf, sharded, controls[:8], zs[:8], pad, np.int32(8), state_mesh(sharded)
@@ -246,6 +248,8 @@ def test_native_fold_runs_per_shard(two_devices):
     if r["native_available"]:  # "auto" picked the native kernel: one call per shard
         assert r["fold_calls"] >= 1
         assert r["fold_local_rows"] >= 1 and r["fold_global_rows"] == 0
+        # threads=None: the process's cores divided between its 2 devices
+        assert r["fold_threads"] == [str(max(1, r["cores"] // 2))]
     else:  # "auto" fell back to the JAX walk: no custom call at all
         assert r["fold_calls"] == 0
 

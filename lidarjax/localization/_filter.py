@@ -485,6 +485,12 @@ class ParticleFilter(eqx.Module):
                 state, control, update
             )
             moved = _sharding.split(self.motion(state.particles, safe_control, key=k_motion), mesh)
+            filt = self
+            if self.measurement.threads is None:  # the cores shared by the shards
+                threads = _sharding.threads_per_shard(mesh)
+                filt = eqx.tree_at(
+                    lambda f: f.measurement, self, self.measurement._with_threads(threads)
+                )
             dtype = state.log_weights.dtype
 
             def local(split, rep):
@@ -507,7 +513,7 @@ class ParticleFilter(eqx.Module):
                     *filt._update(whole, particles, ll, bad_control, update, key, k_resample)
                 )
 
-            reps = {"local": (self, z, update, bad_control)}
+            reps = {"local": (filt, z, update, bad_control)}
             reps["full"] = (self, rest, bad_control, update, key, k_resample)
             (particles, log_weights), (kept, info) = _sharding.gather_then(
                 lambda split, rep: local(split, rep["local"]),

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import copy
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -52,7 +54,9 @@ class ScanModel(eqx.Module):
         chunk_size: rays walked together (see ``batch_log_likelihood``).
         backend: ray-walk backend, ``"auto"``, ``"native"`` or ``"jax"`` (see
             ``batch_log_likelihood``).
-        threads: native worker threads (default: all cores).
+        threads: native worker threads (default: all cores; on particles sharded over
+            devices, :func:`~lidarjax.localization.shard_state`, the cores divided among
+            this process's devices of the mesh, at least 1 per device).
     """
 
     map: eqx.Module
@@ -117,6 +121,15 @@ class ScanModel(eqx.Module):
             check_threads(threads)
         self.backend = backend
         self.threads = threads
+
+    def _with_threads(self, threads: int | None) -> ScanModel:
+        """This model with another ``threads`` (no re-validation: usable on traced
+        models)."""
+        if threads is not None:
+            check_threads(threads)
+        new = copy.copy(self)
+        object.__setattr__(new, "threads", threads)
+        return new
 
     def ray_log_likelihoods(
         self, particles: jaxlie.SE2, ranges: Float[ArrayLike, " b"]

@@ -12,7 +12,8 @@ mesh, and gets XLA's default partitioning, correct but not guaranteed bitwise):
   numbers the one-device filter draws for its particles);
 - measurement update: a :class:`~lidarjax.localization.ScanModel` (the costly part) runs
   per shard under ``jax.shard_map``, each device on its own particles, native kernels
-  included (the FFI fold kernel is called once per shard on that shard's rays);
+  included (the FFI fold kernel is called once per shard on that shard's rays, with
+  this process's cores divided among its devices unless the model sets ``threads``);
 - one all-gather per step (:func:`gather_then`): the new poses, the previous
   log-weights, the log-likelihoods and the per-shard check flags, packed bit for bit into
   one ``[n_local k]`` uint32 array;
@@ -190,6 +191,16 @@ def split_state(state: ParticleState, mesh: Mesh | None) -> ParticleState:
         lambda x: jax.lax.with_sharding_constraint(x, b),
         state,
     )
+
+
+def threads_per_shard(mesh: Mesh) -> int:
+    """Native worker threads per shard: this process's cores divided among its devices
+    of ``mesh`` (at least 1), so that the shards' kernels do not oversubscribe the
+    cores."""
+    from ..raytrace._native import default_threads
+
+    mine = sum(1 for d in mesh.devices.flat if d.process_index == jax.process_index())
+    return max(1, default_threads() // max(1, mine))
 
 
 def per_particle(measurement) -> bool:

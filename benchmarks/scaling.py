@@ -1,5 +1,7 @@
 """Particle filter step on 1 vs 2 devices: particles sharded with
-:func:`lidarjax.localization.shard_state` (strong and weak scaling).
+:func:`lidarjax.localization.shard_state` (strong and weak scaling); ray accumulation on
+1 vs 2 devices: rays split with :func:`lidarjax.raytrace.accumulate_sharded`; the memory
+per device of a grid split in row tiles by :func:`lidarjax.raytrace.accumulate_tiled`.
 
 Setup: a simulated office (:func:`lidarjax.sim.make_office`, 41 poses, 181 beams of which
 every 4th is used, 10 m range), its decay-rate map (0.1 m cells), an
@@ -37,8 +39,22 @@ divided by the number of steps, for every particle count ``n`` in ``--counts`` (
 Each worker checks that its sharded final state equals the unsharded one bitwise and
 records the load average before each timed block (:mod:`benchmarks._harness`).
 
-Run with ``python benchmarks/scaling.py [--quick] [--counts N ...] [--steps T]
-[--repeats R] [--backends native jax] [--out PATH]``; results go to
+Accumulate section (``--sections accumulate``): ``--rays`` (default 2 000 000) random 2-D
+rays (origins uniform in a 51.2 m square grid of 0.05 m cells, 1024 x 1024, directions
+uniform, ranges uniform in [0, 10] m, 10 % SUP with ``r_max`` 10 m) accumulated per
+backend; rays per second from the median of ``--repeats`` timed calls (the first call,
+compilation included, reported separately): ``accumulate`` in the ``1dev`` process, and
+in the ``2dev`` process ``accumulate`` on one device (same-run reference) and
+``accumulate_sharded`` over both (the native kernel gets ``cores // devices`` threads per
+shard). The sharded counts are checked equal to the one-device counts. Tiled memory: in
+the ``2dev`` process, ``accumulate_tiled`` of 1000 rays into a ``--tiled-side`` squared
+grid (default 10 000 x 10 000 = 10^8 cells, float32: 1.2 GB in all, 0.6 GB per device;
+``--quick``: 1000 x 1000) and the bytes each device holds, summed over the
+``addressable_shards`` of H, M and R, next to the analytic ``12 * cells / devices``.
+
+Run with ``python benchmarks/scaling.py [--quick] [--sections filter accumulate]
+[--counts N ...] [--steps T] [--repeats R] [--rays N] [--tiled-side S]
+[--backends native jax] [--out PATH]``; results go to
 ``benchmarks/results/scaling.json`` (``--quick``: tiny sizes, written to
 ``scaling_quick.json``, a smoke test only) and a Markdown table is printed.
 """
@@ -48,6 +64,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import resource
 import subprocess
 import sys
 import tempfile
@@ -112,6 +129,117 @@ def _equal(a, b) -> bool:
     return True
 
 
+def _random_rays(n: int, seed: int = 0):
+    """The accumulate benchmark's grid (1024 x 1024 cells of 0.05 m) and ``n`` rays."""
+    import numpy as np
+
+    from lidarjax.rays import HIT, SUP, RayBatch
+    from lidarjax.raytrace import GridSpec
+
+    spec = GridSpec(np.zeros(2), 0.05, (1024, 1024))
+    rng = np.random.default_rng(seed)
+    o = rng.uniform(0.0, 51.2, (n, 2)).astype(np.float32)
+    a = rng.uniform(-np.pi, np.pi, n)
+    d = np.stack([np.cos(a), np.sin(a)], 1).astype(np.float32)
+    r = rng.uniform(0.0, 10.0, n).astype(np.float32)
+    kind = np.where(rng.uniform(size=n) < 0.1, SUP, HIT).astype(np.int32)
+    r = np.where(kind == SUP, np.float32(np.inf), r)
+    return spec, RayBatch(o, d, r, kind, 0.0, 10.0)
+
+
+def _stats_equal(a, b) -> dict:
+    import numpy as np
+
+    ra, rb = np.asarray(a.lengths), np.asarray(b.lengths)
+    return {
+        "counts_equal": bool(
+            np.array_equal(np.asarray(a.hits), np.asarray(b.hits))
+            and np.array_equal(np.asarray(a.misses), np.asarray(b.misses))
+        ),
+        "lengths_max_rel_err": float(np.max(np.abs(ra - rb) / np.maximum(1.0, np.abs(ra)))),
+    }
+
+
+def accumulate_worker(args, k: int, policy) -> dict:
+    """Accumulate throughput (rays/s) per backend and layout; tiled memory on 2 devices."""
+    import jax
+    import numpy as np
+
+    from lidarjax.raytrace import (
+        GridSpec,
+        _native,
+        accumulate,
+        accumulate_sharded,
+        accumulate_tiled,
+    )
+
+    cores = _native.default_threads()
+    spec, rays = _random_rays(args.rays)
+    out: dict = {"rays": args.rays, "grid": list(spec.shape), "resolution_m": 0.05}
+    runs: dict = {}
+    for backend in args.backends:
+        if backend == "native" and not _native.available():
+            runs[backend] = {"skipped": _native.unavailable_reason()}
+            continue
+        rec: dict = {}
+        results = {}
+        layouts = ["one"] if k == 1 else ["one", "sharded"]
+        for layout in layouts:
+            if layout == "one":
+                threads = args.native_threads or cores
+                fn = lambda t=threads: accumulate(spec, rays, backend=backend, threads=t)  # noqa: E731
+            else:
+                threads = args.native_threads or max(1, cores // k)
+                fn = lambda t=threads: accumulate_sharded(  # noqa: E731
+                    spec, rays, backend=backend, threads=t
+                )
+            timed, res = policy.time_calls(
+                f"{k}dev accumulate {backend} {layout}",
+                fn,
+                args.repeats,
+                warmup=1,
+                return_output=True,
+            )
+            timed["rays_per_s"] = args.rays / timed["median_s"]
+            timed["native_threads"] = threads if backend == "native" else None
+            rec[layout] = timed
+            results[layout] = res
+        if "sharded" in rec:
+            rec["sharded"].update(_stats_equal(results["one"], results["sharded"]))
+        runs[backend] = rec
+    out["runs"] = runs
+    if k > 1:
+        side = args.tiled_side - args.tiled_side % k
+        big = GridSpec(np.zeros(2), 0.1, (side, side))
+        few = _random_rays(1000, seed=1)[1]
+        t0 = time.perf_counter()
+        tiled = jax.block_until_ready(accumulate_tiled(big, few))
+        per_device: dict = {}
+        for x in (tiled.hits, tiled.misses, tiled.lengths):
+            for sh in x.addressable_shards:
+                per_device[str(sh.device)] = per_device.get(str(sh.device), 0) + sh.data.nbytes
+        cells = side * side
+        out["tiled"] = {
+            "grid": [side, side],
+            "cells": cells,
+            "devices": k,
+            "bytes_per_device": per_device,
+            "bytes_per_device_analytic": 12 * cells // k,
+            "bytes_one_device_analytic": 12 * cells,
+            "bytes_per_device_for_1e8_cells_analytic": 12 * 10**8 // k,
+            "shard_shape": list(tiled.hits.addressable_shards[0].data.shape),
+            "seconds": time.perf_counter() - t0,
+            # peak resident memory of this whole process (both devices, all sections so far)
+            "process_max_rss_bytes": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
+            "note": (
+                "resident H, M, R (int32, int32, float32) per device; while a chunk is "
+                "walked a device also holds the walk's accumulators (a complex64 and an "
+                "int32 per tile cell: 12 bytes per tile cell more) and one chunk of rays"
+            ),
+        }
+    return out
+
+
 def worker(args) -> dict:
     """One process with ``args.devices`` host devices: time every (backend, n, layout)."""
     import jax
@@ -127,7 +255,7 @@ def worker(args) -> dict:
     cores = _native.default_threads()
     out: dict = {"devices": k, "cores": cores, "xla_flags": os.environ.get("XLA_FLAGS", "")}
     runs: dict = {}
-    for backend in args.backends:
+    for backend in args.backends if "filter" in args.sections else ():
         if backend == "native" and not _native.available():
             runs[backend] = {"skipped": _native.unavailable_reason()}
             continue
@@ -166,6 +294,8 @@ def worker(args) -> dict:
         runs[backend] = rec
     out["runs"] = runs
     out["steps"] = args.steps
+    if "accumulate" in args.sections:
+        out["accumulate"] = accumulate_worker(args, k, policy)
     out["native"] = native_info()
     out["load_policy"] = policy.summary()
     return out
@@ -229,6 +359,53 @@ def summarise(one: dict, two: dict, counts, backends) -> dict:
     return out
 
 
+def summarise_accumulate(one: dict, two: dict, backends) -> dict:
+    """Rays per second on 1 and 2 devices and the tiled grid's memory per device."""
+    a1, a2 = one.get("accumulate", {}), two.get("accumulate", {})
+    out: dict = {}
+    for b in backends:
+        r1 = a1.get("runs", {}).get(b, {})
+        r2 = a2.get("runs", {}).get(b, {})
+        get = lambda r, lay: r.get(lay, {}).get("rays_per_s")  # noqa: E731
+        t1, t2_one, t2 = get(r1, "one"), get(r2, "one"), get(r2, "sharded")
+        out[b] = {
+            "rays_per_s_1dev": t1,
+            "rays_per_s_2dev_unsharded": t2_one,
+            "rays_per_s_2dev_sharded": t2,
+            "speedup": ratio(t2, t1),
+            "speedup_same_run": ratio(t2, t2_one),
+            "counts_equal": r2.get("sharded", {}).get("counts_equal"),
+        }
+    out["tiled"] = a2.get("tiled")
+    return out
+
+
+def markdown_accumulate(summary: dict) -> str:
+    lines = [
+        "| backend | 1 dev (Mrays/s) | 2 dev sharded | speed-up (same run) | counts equal |",
+        "|---|---|---|---|---|",
+    ]
+    for b, r in summary.items():
+        if b == "tiled":
+            continue
+        m1 = r["rays_per_s_1dev"] and r["rays_per_s_1dev"] / 1e6
+        m2 = r["rays_per_s_2dev_sharded"] and r["rays_per_s_2dev_sharded"] / 1e6
+        lines.append(
+            f"| {b} | {_f(m1, '.2f')} | {_f(m2, '.2f')} | {_f(r['speedup'], '.2f')} "
+            f"({_f(r['speedup_same_run'], '.2f')}) | {r['counts_equal']} |"
+        )
+    t = summary.get("tiled")
+    if t:
+        per = ", ".join(f"{v / 2**20:.1f}" for v in t["bytes_per_device"].values())
+        lines.append(
+            f"\nTiled {t['grid'][0]} x {t['grid'][1]} grid on {t['devices']} devices: "
+            f"{per} MiB per device (H, M, R; analytic {t['bytes_per_device_analytic'] / 2**20:.1f} "
+            f"MiB; a 10^8-cell grid: {t['bytes_per_device_for_1e8_cells_analytic'] / 2**20:.1f} "
+            "MiB per device)"
+        )
+    return "\n".join(lines)
+
+
 def _f(x, fmt) -> str:
     return "–" if x is None else format(x, fmt)
 
@@ -263,6 +440,15 @@ def main(argv=None) -> dict | None:
         default=None,
         help="native threads per shard (default: all cores, divided by the devices)",
     )
+    ap.add_argument(
+        "--sections",
+        nargs="+",
+        default=["filter", "accumulate"],
+        choices=["filter", "accumulate"],
+        help="what to measure",
+    )
+    ap.add_argument("--rays", type=int, default=None, help="rays of the accumulate section")
+    ap.add_argument("--tiled-side", type=int, default=None, help="cells per side of the tiled grid")
     ap.add_argument("--out", type=Path, default=None)
     ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--devices", type=int, default=1, help=argparse.SUPPRESS)
@@ -275,6 +461,10 @@ def main(argv=None) -> dict | None:
         args.steps = 4 if args.quick else 16
     if args.repeats is None:
         args.repeats = 1 if args.quick else 5
+    if args.rays is None:
+        args.rays = 20_000 if args.quick else 2_000_000
+    if args.tiled_side is None:
+        args.tiled_side = 1000 if args.quick else 10_000
     if any(n % 4 for n in args.counts):  # n and n / 2 must split over 2 devices
         ap.error(f"--counts must be multiples of 4, got {args.counts}")
 
@@ -291,6 +481,12 @@ def main(argv=None) -> dict | None:
         str(args.repeats),
         "--backends",
         *args.backends,
+        "--sections",
+        *args.sections,
+        "--rays",
+        str(args.rays),
+        "--tiled-side",
+        str(args.tiled_side),
         "--max-wait",
         str(args.max_wait),
         "--wait-budget",
@@ -305,6 +501,7 @@ def main(argv=None) -> dict | None:
     print("2 devices ...", flush=True)
     two = _spawn(2, passthrough)
     summary = summarise(one, two, args.counts, args.backends)
+    summary_acc = summarise_accumulate(one, two, args.backends)
     report = {
         "benchmark": "scaling",
         "quick": args.quick,
@@ -312,6 +509,9 @@ def main(argv=None) -> dict | None:
         "steps": args.steps,
         "repeats": args.repeats,
         "summary": summary,
+        "rays": args.rays,
+        "sections": args.sections,
+        "summary_accumulate": summary_acc,
         "processes": {"1dev": one, "2dev": two},
         "note": (
             "strong_speedup = step time on 1 device (separate process, device count 1) / "
@@ -326,7 +526,10 @@ def main(argv=None) -> dict | None:
     }
     out = args.out or (QUICK_OUT if args.quick else DEFAULT_OUT)
     write_json(out, report)
-    print(markdown(summary))
+    if "filter" in args.sections:
+        print(markdown(summary))
+    if "accumulate" in args.sections:
+        print(markdown_accumulate(summary_acc))
     print(f"wrote {out}")
     return report
 

@@ -47,12 +47,16 @@ from ._posterior import gamma_moment_prior as gamma_moment_prior
 from ._posterior import gamma_posterior as gamma_posterior
 from ._posterior import log_likelihood as posterior_log_likelihood
 from ._posterior import occupancy as occupancy
+from ._sharded import dct_objective_sharded as dct_objective_sharded
+from ._sharded import fit_dct_sharded as fit_dct_sharded
 from ._smooth_field import SmoothDecayRateField as SmoothDecayRateField
 from ._smoothing import blur as blur
 from ._smoothing import smooth_cells as smooth_cells
 from ._smoothing import smooth_stats as smooth_stats
 
 __all__ = [
+    "dct_objective_sharded",
+    "fit_dct_sharded",
     "AbstractDecayRateField",
     "AbstractQuadratureField",
     "field_log_likelihood",

@@ -44,6 +44,9 @@ from ._primitives import ray_segment as ray_segment
 from ._primitives import ray_sphere as ray_sphere
 from ._primitives import slabs as slabs
 from ._primitives import unchunk as unchunk
+from ._sharded import accumulate_sharded as accumulate_sharded
+from ._sharded import accumulate_tiled as accumulate_tiled
+from ._sharded import device_mesh as device_mesh
 
 __all__ = [
     "GridSpec",
@@ -55,6 +58,9 @@ __all__ = [
     "traverse_rays",
     "max_cells_for",
     "accumulate",
+    "accumulate_sharded",
+    "accumulate_tiled",
+    "device_mesh",
     "expected_cell_count",
     "fold_traversal",
     "fold_rays",

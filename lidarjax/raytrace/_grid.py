@@ -784,9 +784,15 @@ def _box_diagonal(spec: GridSpec):
 _BLOCK_RAYS = 1 << 16
 
 
-def _walk_block(spec: GridSpec, origins, directions, lengths, ray_hits, use, chunk_size: int):
+def _walk_block(
+    spec: GridSpec, origins, directions, lengths, ray_hits, use, chunk_size: int, tile=None
+):
     """``(R, V, H)`` (lengths, visits = H + M, hits) of one block of rays, flat
-    ``[n_cells]``: the block is sorted by expected work and walked in chunks."""
+    ``[n_cells]``: the block is sorted by expected work and walked in chunks.
+
+    ``tile = (row0, rows)`` (``row0`` may be traced, ``rows`` static): the same walk over
+    the whole grid, adding only the cells of the rows ``[row0, row0 + rows)`` (flat
+    ``[rows * prod(shape[1:])]``; other cells go to the discarded last bin)."""
     dtype = origins.dtype
     # Sort by expected work so each chunk's while-loop runs about as long as its rays need.
     # expected cells walked: L1 length of the part of the ray inside the grid box
@@ -804,8 +810,9 @@ def _walk_block(spec: GridSpec, origins, directions, lengths, ray_hits, use, chu
             (use, False),
         )
     )
-    n_cells = spec.n_cells
-    strides = jnp.asarray(np.cumprod((1,) + spec.shape[:0:-1])[::-1].copy(), jnp.int32)
+    shape = spec.shape if tile is None else (tile[1], *spec.shape[1:])
+    n_cells = math.prod(shape)
+    strides = jnp.asarray(np.cumprod((1,) + shape[:0:-1])[::-1].copy(), jnp.int32)
     # Accumulators (last entry = bin for padding): lengths R, visits V = H + M, hits H.
     # Lengths R (real part) and visits V = H + M (imaginary part) share one complex
     # accumulator: one scatter per step instead of two (~1.4x faster on CPU). V is exact
@@ -817,8 +824,18 @@ def _walk_block(spec: GridSpec, origins, directions, lengths, ray_hits, use, chu
     step = jax.vmap(functools.partial(_step, spec))
     budget = walk_bound(spec)
 
-    def flat_index(cell, valid):
-        return jnp.where(valid, jnp.sum(cell * strides, axis=-1), n_cells)
+    if tile is None:
+
+        def flat_index(cell, valid):
+            return jnp.where(valid, jnp.sum(cell * strides, axis=-1), n_cells)
+
+    else:
+        shift = jnp.zeros(spec.dim, jnp.int32).at[0].set(tile[0])
+
+        def flat_index(cell, valid):
+            local = cell - shift
+            inside = valid & (local[..., 0] >= 0) & (local[..., 0] < tile[1])
+            return jnp.where(inside, jnp.sum(local * strides, axis=-1), n_cells)
 
     def chunk_body(acc, xs):
         o, d, length, is_hit, use_c = xs

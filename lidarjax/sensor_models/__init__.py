@@ -29,8 +29,10 @@ from ._endpoint import likelihood_field_log_likelihood as likelihood_field_log_l
 from ._endpoint import log_likelihood as endpoint_log_likelihood
 from ._fast import batch_log_likelihood as batch_log_likelihood
 from ._reflection import log_likelihood as reflection_log_likelihood
+from ._sharded import log_likelihood_at_poses_sharded as log_likelihood_at_poses_sharded
 
 __all__ = [
+    "log_likelihood_at_poses_sharded",
     "AbstractGridModel",
     "GridWalk",
     "grid_log_likelihood",

@@ -383,6 +383,23 @@ def test_wheel_odometry():
     )
 
 
+def test_wheel_odometry_drifts_when_turning_on_the_spot():
+    """sigma_rot_per_rad: a robot turning on the spot (d = 0) gets heading noise of std
+    sigma * |dyaw| per step (the per-metre terms are zero there); 0 keeps the old model."""
+    n = 20001
+    gt = np.column_stack([np.zeros(n), np.zeros(n), np.arange(n) * 0.1])
+    gt[:, 2] = np.mod(gt[:, 2] + np.pi, 2 * np.pi) - np.pi
+    odo = wheel_odometry(gt, seed=3, sigma_rot_per_rad=0.05, heading_bias_per_m=0.0)
+    np.testing.assert_array_equal(odo[:, :2], 0.0)  # no translation at all
+    steps = np.angle(np.exp(1j * (np.diff(odo[:, 2]) - 0.1)))  # per-step heading error
+    assert abs(np.std(steps) / (0.05 * 0.1) - 1) < 0.03  # 20 000 samples: ~0.5 % spread
+    assert abs(np.mean(steps)) < 4 * 0.005 / np.sqrt(n)
+    # default 0: the same odometry as before the term existed, and no rotation noise here
+    np.testing.assert_allclose(wheel_odometry(gt, seed=3, heading_bias_per_m=0.0), gt)
+    with pytest.raises(ValueError, match="sigma_rot_per_rad"):
+        wheel_odometry(gt, seed=0, sigma_rot_per_rad=-1.0)
+
+
 # ------------------------------------------------------------------ scans on the route
 
 

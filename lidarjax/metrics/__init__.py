@@ -20,10 +20,12 @@ from ._segmentation import hoover_scores as hoover_scores
 from ._segmentation import k_value as k_value
 from ._segmentation import segmentation_rmse as segmentation_rmse
 from ._trajectory import AbsoluteTrajectoryError as AbsoluteTrajectoryError
+from ._trajectory import RelativePoseError as RelativePoseError
 from ._trajectory import TrajectoryErrors as TrajectoryErrors
 from ._trajectory import absolute_trajectory_error as absolute_trajectory_error
 from ._trajectory import align_se2 as align_se2
 from ._trajectory import interpolate_at_arclength as interpolate_at_arclength
+from ._trajectory import relative_pose_error as relative_pose_error
 from ._trajectory import trajectory_errors as trajectory_errors
 
 __all__ = [
@@ -47,6 +49,8 @@ __all__ = [
     "trajectory_errors",
     "AbsoluteTrajectoryError",
     "absolute_trajectory_error",
+    "relative_pose_error",
+    "RelativePoseError",
     "align_se2",
     "interpolate_at_arclength",
 ]

@@ -33,10 +33,12 @@ import numpy as np
 
 __all__ = [
     "AbsoluteTrajectoryError",
+    "RelativePoseError",
     "TrajectoryErrors",
     "absolute_trajectory_error",
     "align_se2",
     "interpolate_at_arclength",
+    "relative_pose_error",
     "trajectory_errors",
 ]
 
@@ -412,4 +414,119 @@ def absolute_trajectory_error(
         translation_m=np.asarray(t, np.float64),
         errors_m=err,
         aligned=aligned,
+    )
+
+
+@dataclass(frozen=True)
+class RelativePoseError:
+    """Relative pose error (RPE) over pose pairs ``delta_m`` apart along the ground truth's
+    path (what ``evo_rpe --delta <d> --delta_unit m --pairs_from_reference`` reports; drift
+    per ``delta_m``).
+
+    Attributes:
+        rmse_m: Root mean square translation error of the relative motions (m).
+        mean_m: Mean translation error (m).
+        max_m: Largest translation error (m).
+        rotation_rmse_rad: Root mean square rotation error of the relative motions (rad).
+        rotation_mean_rad: Mean absolute rotation error (rad).
+        n: Number of pairs.
+        delta_m: The path distance between the poses of a pair (m).
+        pairs: ``[n 2]`` row indices ``(i, j)`` of the pairs.
+        translation_m: ``[n]`` translation error per pair (m).
+        rotation_rad: ``[n]`` absolute rotation error per pair (rad).
+    """
+
+    rmse_m: float
+    mean_m: float
+    max_m: float
+    rotation_rmse_rad: float
+    rotation_mean_rad: float
+    n: int
+    delta_m: float
+    pairs: np.ndarray
+    translation_m: np.ndarray
+    rotation_rad: np.ndarray
+
+
+def _path_pairs(xy: np.ndarray, delta_m: float) -> np.ndarray:
+    """Consecutive pairs along the path: from row ``i``, the first later row ``j`` whose
+    path length from ``i`` (straight segments) is at least ``delta_m``; the next pair
+    starts at ``j``. ``[n 2]`` int."""
+    step = np.linalg.norm(np.diff(xy, axis=0), axis=1)
+    pairs, start, acc = [], 0, 0.0
+    for k, d in enumerate(step, start=1):  # evaluation code: a plain loop over rows
+        acc += float(d)
+        if acc >= delta_m:
+            pairs.append((start, k))
+            start, acc = k, 0.0
+    return np.asarray(pairs, np.int64).reshape(-1, 2)
+
+
+def relative_pose_error(
+    estimate_xy_yaw: np.ndarray, truth_xy_yaw: np.ndarray, *, delta_m: float = 1.0
+) -> RelativePoseError:
+    """Relative pose error (RPE): how far the estimate's relative motion over ``delta_m`` of
+    the ground truth's path differs from the true one (drift; alignment-free).
+
+    Pairs ``(i, j)``: from row 0, the first row whose ground-truth path length from ``i``
+    reaches ``delta_m``, then again from there (consecutive pairs along the ground truth's
+    path, as ``evo_rpe --delta_unit m --pairs_from_reference``; evo's default takes the
+    pairs along the estimate's path, which changes with the error being measured). For
+    each pair the error motion is ``E = (G_i^-1 G_j)^-1 (P_i^-1 P_j)`` with ``G`` the
+    ground-truth and ``P`` the estimated poses in SE(2); its translation norm (m) and the
+    absolute value of its angle (rad) are reported. ``evo_rpe tum gt est --delta 1
+    --delta_unit m --pairs_from_reference`` gives the same translation and rotation
+    statistics on files written by :func:`lidarjax.datasets.write_tum` (tested).
+
+    Args:
+        estimate_xy_yaw: ``[N 3]`` estimated poses ``(x [m], y [m], yaw [rad])``.
+        truth_xy_yaw: ``[N 3]`` ground truth at the same times.
+        delta_m: path distance between the poses of a pair (m, > 0).
+
+    Returns:
+        A :class:`RelativePoseError`.
+
+    Raises:
+        ValueError: bad shapes, non-finite poses, a bad ``delta_m``, or a ground-truth path
+            shorter than ``delta_m`` (no pair).
+    """
+    est, gt, use = _paired(estimate_xy_yaw, truth_xy_yaw, None)
+    if not use.all() or not (np.isfinite(est[:, 2]).all() and np.isfinite(gt[:, 2]).all()):
+        raise ValueError("estimate_xy_yaw and truth_xy_yaw must be finite everywhere for RPE")
+    if not (isinstance(delta_m, (int, float, np.floating)) and np.isfinite(delta_m)):
+        raise ValueError(f"delta_m must be a finite number > 0, got {delta_m!r}")
+    if delta_m <= 0:
+        raise ValueError(f"delta_m must be > 0, got {delta_m!r}")
+    pairs = _path_pairs(gt[:, :2], float(delta_m))
+    if pairs.shape[0] == 0:
+        length = float(np.sum(np.linalg.norm(np.diff(gt[:, :2], axis=0), axis=1)))
+        raise ValueError(
+            f"the ground-truth path ({length:.3f} m) is shorter than delta_m = {delta_m} m: no pair"
+        )
+    i, j = pairs[:, 0], pairs[:, 1]
+
+    def relative(p):  # P_i^-1 P_j as (x, y, yaw) in frame i
+        c, s_ = np.cos(p[i, 2]), np.sin(p[i, 2])
+        d = p[j, :2] - p[i, :2]
+        return np.column_stack(
+            [c * d[:, 0] + s_ * d[:, 1], -s_ * d[:, 0] + c * d[:, 1], p[j, 2] - p[i, 2]]
+        )
+
+    g, q = relative(gt), relative(est)
+    # E = g^-1 q: translation R(-g_yaw) (q_t - g_t), angle q_yaw - g_yaw
+    c, s_ = np.cos(g[:, 2]), np.sin(g[:, 2])
+    dt = q[:, :2] - g[:, :2]
+    et = np.hypot(c * dt[:, 0] + s_ * dt[:, 1], -s_ * dt[:, 0] + c * dt[:, 1])
+    er = np.abs(_wrap(q[:, 2] - g[:, 2]))
+    return RelativePoseError(
+        rmse_m=float(np.sqrt(np.mean(et**2))),
+        mean_m=float(np.mean(et)),
+        max_m=float(np.max(et)),
+        rotation_rmse_rad=float(np.sqrt(np.mean(er**2))),
+        rotation_mean_rad=float(np.mean(er)),
+        n=int(pairs.shape[0]),
+        delta_m=float(delta_m),
+        pairs=pairs,
+        translation_m=et,
+        rotation_rad=er,
     )

@@ -459,3 +459,31 @@ def test_traverse_rays_matches_single_ray_traverse():
             )
             np.testing.assert_array_equal(np.asarray(one.valid), np.asarray(tr.valid[s, b]))
             np.testing.assert_allclose(np.asarray(one.lengths), np.asarray(tr.lengths[s, b]))
+
+
+def test_accumulate_float64_numpy_rays_without_x64_warn_nothing():
+    """float64 NumPy rays (the NumPy default) in a float32 process are float32 rays: the
+    same statistics as the float32 batch, and no dtype-truncation warning."""
+    with jax.enable_x64(False):  # the suite runs with x64 on
+        _float64_rays_in_float32_process()
+
+
+def _float64_rays_in_float32_process():
+    import warnings
+
+    from lidarjax.rays import HIT, RayBatch
+
+    spec = GridSpec(np.zeros(2), 0.1, (40, 40))
+    rng = np.random.default_rng(0)
+    a = rng.uniform(-np.pi, np.pi, 300)
+    o, d = rng.uniform(0.5, 3.5, (300, 2)), np.stack([np.cos(a), np.sin(a)], 1)
+    r = rng.uniform(0.1, 2.0, 300)
+    rays64 = RayBatch(o, d, r, np.full(300, HIT), 0.0, 5.0)
+    rays32 = RayBatch(*(x.astype(np.float32) for x in (o, d, r)), np.full(300, HIT), 0.0, 5.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        s64 = accumulate(spec, rays64, backend="jax")
+    s32 = accumulate(spec, rays32, backend="jax")
+    assert s64.lengths.dtype == np.float32
+    np.testing.assert_array_equal(np.asarray(s64.hits), np.asarray(s32.hits))
+    np.testing.assert_array_equal(np.asarray(s64.lengths), np.asarray(s32.lengths))

@@ -1,5 +1,12 @@
 """Dataset layer: file readers/writers and the checksummed data registry.
 
+Formats: CARMEN logs, KITTI poses and times, NCLT, PCD (ascii, binary,
+binary_compressed with LZF), PLY, ROS 1 / ROS 2 bags (LaserScan, PointCloud2, Odometry,
+tf; through ``rosbags``), organised scans from spinning-lidar clouds, ROS ``map_server``
+maps and ``.npz`` grid maps, TUM and KITTI trajectories, labelled clouds, polylines as
+CSV and SVG. Every reader raises :class:`DatasetFormatError` naming the file on damaged
+input. The registry (:func:`fetch`) verifies every file by SHA-256.
+
 NumPy only; nothing here is called inside ``jit``. Readers return plain array containers.
 The synthetic worlds and simulators live in :mod:`lidarjax.sim`; their old names here
 (``lidarjax.datasets.simulate_synpeb_scan`` etc.) still resolve, lazily and with a

@@ -284,7 +284,8 @@ def kl_to_gaussian(
 
     ``p_gt = N(x; s, cov)`` (section 8.5.2: isotropic, sigma = 0.05 m), and
     ``p(x) ∝ p(z | x, m)`` (MLM) or ``∝ L(z, x)`` (FMP, Eq. 8.20), i.e. ``log_lik_samples``
-    from the ML sensor models or from :func:`lidarjax.maps.log_likelihood`. Both ``p_gt``
+    from the ML sensor models or from
+    :func:`lidarjax.maps.posterior_log_likelihood`. Both ``p_gt``
     and ``p`` are normalised over the ``m`` sample poses (as the text prescribes):
     ``g_i = N(s_i) / sum_k N(s_k)``, ``p_i = p(z|s_i) / sum_k p(z|s_k)``.
 

@@ -971,7 +971,8 @@ def accumulate(
     n = flat.ranges.shape[0]
     if n == 0:
         raise ValueError("rays is empty")
-    dtype = jnp.result_type(flat.origins.dtype, spec.origin.dtype)
+    # canonical first: float64 NumPy rays without x64 are float32 rays, with no warning
+    dtype = jnp.result_type(jax.dtypes.canonicalize_dtype(flat.origins.dtype), spec.origin.dtype)
     args = (
         flat.origins.astype(dtype),
         flat.directions.astype(dtype),

@@ -103,6 +103,7 @@ def test_cli_option_reaches_experiments():
 SHARED = ROOT / ".." / "shared" / "data"
 
 
+@pytest.mark.slow  # two CLI runs on a shared log (~35 s)
 @pytest.mark.skipif(not SHARED.is_dir(), reason="needs ../shared/data")  # as tests/test_cli.py
 def test_cli_localize_splits_particles_over_host_devices(tmp_path):
     """``lidarjax --host-devices 2 localize``: the particles are split over the 2 devices

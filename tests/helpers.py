@@ -31,3 +31,30 @@ def carmen_even_scan_stats(name: str, r_min: float, resolution: float = 0.1, mar
         np.asarray(rays.endpoints()[rays.kind == 0]), resolution, margin=margin
     )
     return log, accumulate(spec, rays)
+
+
+def run_on_host_devices(script: str, cwd, n_devices: int = 2, timeout: int = 300) -> dict:
+    """Run ``script`` with ``python -c`` in a fresh process whose CPU is ``n_devices`` JAX
+    devices (``XLA_FLAGS=--xla_force_host_platform_device_count``: JAX fixes its devices
+    when it starts) and return the JSON it prints on its last ``RESULT `` line."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    env = dict(os.environ)
+    env["XLA_FLAGS"] = (
+        env.get("XLA_FLAGS", "") + f" --xla_force_host_platform_device_count={n_devices}"
+    ).strip()
+    env["JAX_PLATFORMS"] = "cpu"
+    proc = subprocess.run(
+        [sys.executable, "-c", script],
+        env=env,
+        cwd=cwd,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
+    assert proc.returncode == 0, proc.stderr[-4000:]
+    line = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT ")][-1]
+    return json.loads(line[len("RESULT ") :])

@@ -7,16 +7,13 @@ JAX fixes its devices when it starts, so the 2-device runs happen in a fresh pro
 
 from __future__ import annotations
 
-import json
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import run_on_host_devices
 
 from lidarjax.localization import init_gaussian, particle_mesh, shard_state
 
@@ -175,22 +172,7 @@ print("RESULT " + json.dumps(out))
 
 @pytest.fixture(scope="module")
 def two_devices() -> dict:
-    env = dict(os.environ)
-    env["XLA_FLAGS"] = (
-        env.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2"
-    ).strip()
-    env["JAX_PLATFORMS"] = "cpu"
-    proc = subprocess.run(
-        [sys.executable, "-c", SCRIPT],
-        env=env,
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
-    assert proc.returncode == 0, proc.stderr[-4000:]
-    line = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT ")][-1]
-    return json.loads(line[len("RESULT ") :])
+    return run_on_host_devices(SCRIPT, ROOT)
 
 
 def _split_over_two(lay: dict, n: int) -> None:

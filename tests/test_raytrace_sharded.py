@@ -8,16 +8,13 @@ main process (one device) checks 1-device meshes and the argument errors."""
 
 from __future__ import annotations
 
-import json
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import run_on_host_devices
 from jax.sharding import Mesh
 
 from lidarjax.maps import dct_objective_sharded
@@ -260,22 +257,7 @@ print("RESULT " + json.dumps(out))
 
 @pytest.fixture(scope="module")
 def two_devices() -> dict:
-    env = dict(os.environ)
-    env["XLA_FLAGS"] = (
-        env.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2"
-    ).strip()
-    env["JAX_PLATFORMS"] = "cpu"
-    proc = subprocess.run(
-        [sys.executable, "-c", SCRIPT],
-        env=env,
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
-    assert proc.returncode == 0, proc.stderr[-4000:]
-    line = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT ")][-1]
-    return json.loads(line[len("RESULT ") :])
+    return run_on_host_devices(SCRIPT, ROOT)
 
 
 def _backends(r: dict) -> list[str]:

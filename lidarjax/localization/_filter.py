@@ -495,7 +495,7 @@ class ParticleFilter(eqx.Module):
 
             def local(split, rep):
                 moved, old, log_weights = split
-                filt, z, update, bad_control = rep
+                filt, z, update, bad_control = rep[:4]
                 ll = _checks.cond(
                     update,
                     lambda: jnp.asarray(filt.measurement(moved, z), dtype),
@@ -507,20 +507,18 @@ class ParticleFilter(eqx.Module):
 
             def full(split, rep):
                 particles, log_weights, ll = split
-                filt, rest, bad_control, update, key, k_resample = rep
+                filt, _, update, bad_control, rest, key, k_resample = rep
                 whole = rebuild(particles, log_weights, rest)
                 return unbuild(
                     *filt._update(whole, particles, ll, bad_control, update, key, k_resample)
                 )
 
-            reps = {"local": (filt, z, update, bad_control)}
-            reps["full"] = (self, rest, bad_control, update, key, k_resample)
             (particles, log_weights), (kept, info) = _sharding.gather_then(
-                lambda split, rep: local(split, rep["local"]),
-                lambda split, rep: full(split, rep["full"]),
+                local,
+                full,
                 mesh,
                 (moved, state.particles, state.log_weights),
-                reps,
+                (filt, z, update, bad_control, rest, key, k_resample),
             )
         else:
 

@@ -487,6 +487,21 @@ def _bucketed_setup(
     return obj, a0
 
 
+def _fit_box(init, shape, lower, extent):
+    """``(shape, lower, extent)`` of a fit: ``init``'s box (and shape, which ``shape``
+    must equal if given) or the given ones."""
+    if init is not None:
+        if not isinstance(init, DCTMap):
+            raise ValueError(f"init must be a DCTMap, got {type(init).__name__}")
+        shape = init.shape if shape is None else tuple(shape)
+        if tuple(shape) != init.shape:
+            raise ValueError(f"shape {tuple(shape)} differs from init.shape {init.shape}")
+        lower, extent = init.lower, init.extent
+    if shape is None or lower is None or extent is None:
+        raise ValueError("pass shape, lower and extent, or an init map")
+    return tuple(shape), lower, extent
+
+
 def fit_dct(
     rays: RayBatch,
     shape: tuple[int, ...] | None = None,
@@ -526,15 +541,7 @@ def fit_dct(
         ``(map, solution)``: the fitted :class:`DCTMap` and optimistix's ``Solution``
         (``.stats["num_steps"]``, ``.result``).
     """
-    if init is not None:
-        if not isinstance(init, DCTMap):
-            raise ValueError(f"init must be a DCTMap, got {type(init).__name__}")
-        shape = init.shape if shape is None else tuple(shape)
-        if tuple(shape) != init.shape:
-            raise ValueError(f"shape {tuple(shape)} differs from init.shape {init.shape}")
-        lower, extent = init.lower, init.extent
-    if shape is None or lower is None or extent is None:
-        raise ValueError("pass shape, lower and extent, or an init map")
+    shape, lower, extent = _fit_box(init, shape, lower, extent)
     obj, a0 = _bucketed_setup(
         rays, shape, lower, extent, initial=init is None, chunk_size=chunk_size
     )

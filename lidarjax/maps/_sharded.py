@@ -20,7 +20,7 @@ from jax.sharding import Mesh
 from ..rays import RayBatch
 from ..raytrace._sharded import RAY_AXIS, _mesh_axis
 from ._dct import DCTMap
-from ._fit import _minimise, dct_objective, grid_initial_map
+from ._fit import _fit_box, _minimise, dct_objective, grid_initial_map
 
 __all__ = ["dct_objective_sharded", "fit_dct_sharded"]
 
@@ -115,15 +115,7 @@ def fit_dct_sharded(
     Returns:
         ``(map, solution)`` as for ``fit_dct``.
     """
-    if init is not None:
-        if not isinstance(init, DCTMap):
-            raise ValueError(f"init must be a DCTMap, got {type(init).__name__}")
-        shape = init.shape if shape is None else tuple(shape)
-        if tuple(shape) != init.shape:
-            raise ValueError(f"shape {tuple(shape)} differs from init.shape {init.shape}")
-        lower, extent = init.lower, init.extent
-    if shape is None or lower is None or extent is None:
-        raise ValueError("pass shape, lower and extent, or an init map")
+    shape, lower, extent = _fit_box(init, shape, lower, extent)
     obj = dct_objective_sharded(rays, lower, extent, tuple(shape), mesh, chunk_size=chunk_size)
     if init is None:
         init = grid_initial_map(rays, lower, extent, tuple(shape))

@@ -177,6 +177,18 @@ def _check_poses(name: str, arr: Any) -> np.ndarray:
     return out
 
 
+def _checked_pair(estimate_xy_yaw, truth_xy_yaw) -> tuple[np.ndarray, np.ndarray]:
+    """The checked ``[N 3]`` estimate and ground truth, of the same shape."""
+    est = _check_poses("estimate_xy_yaw", estimate_xy_yaw)
+    gt = _check_poses("truth_xy_yaw", truth_xy_yaw)
+    if est.shape != gt.shape:
+        raise ValueError(
+            f"estimate_xy_yaw and truth_xy_yaw must have the same shape, got {est.shape} "
+            f"and {gt.shape}"
+        )
+    return est, gt
+
+
 def _ground_truth_arclength(gt_xy: np.ndarray) -> np.ndarray:
     """Cumulative arc length, joining consecutive rows with finite positions.
 
@@ -228,13 +240,7 @@ def trajectory_errors(
             the ground truth never moves, or no evaluation point has valid rows. The
             message names the offending argument.
     """
-    est = _check_poses("estimate_xy_yaw", estimate_xy_yaw)
-    gt = _check_poses("truth_xy_yaw", truth_xy_yaw)
-    if est.shape != gt.shape:
-        raise ValueError(
-            f"estimate_xy_yaw and truth_xy_yaw must have the same shape, got {est.shape} "
-            f"and {gt.shape}"
-        )
+    est, gt = _checked_pair(estimate_xy_yaw, truth_xy_yaw)
     n_rows = gt.shape[0]
     if n_rows < 2:
         raise ValueError(f"truth_xy_yaw needs at least 2 rows, got {n_rows}")
@@ -326,13 +332,7 @@ class AbsoluteTrajectoryError:
 def _paired(estimate_xy_yaw, truth_xy_yaw, valid) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Checked ``[N 3]`` estimate and truth and the rows to use: finite positions in both
     and ``valid`` (optional ``[N]`` bool)."""
-    est = _check_poses("estimate_xy_yaw", estimate_xy_yaw)
-    gt = _check_poses("truth_xy_yaw", truth_xy_yaw)
-    if est.shape != gt.shape:
-        raise ValueError(
-            f"estimate_xy_yaw and truth_xy_yaw must have the same shape, got {est.shape} "
-            f"and {gt.shape}"
-        )
+    est, gt = _checked_pair(estimate_xy_yaw, truth_xy_yaw)
     use = np.isfinite(est[:, :2]).all(1) & np.isfinite(gt[:, :2]).all(1)
     if valid is not None:
         valid = np.asarray(valid, bool)

@@ -882,9 +882,38 @@ def _accumulate(
     block: int,
     sub_as_hit: bool,
 ):
-    """JAX path of :func:`accumulate`: a ``lax.scan`` over blocks of ``block`` rays read
-    with ``dynamic_slice`` (the last block is shifted back to stay in bounds and masks the
-    rays an earlier block took), so temporaries are ``O(block + n_cells)``."""
+    """JAX path of :func:`accumulate` (compiled; see :func:`_accumulate_blocks`)."""
+    return _accumulate_blocks(
+        spec,
+        origins,
+        directions,
+        ranges,
+        kind,
+        r_max,
+        chunk_size=chunk_size,
+        block=block,
+        sub_as_hit=sub_as_hit,
+    )
+
+
+def _accumulate_blocks(
+    spec: GridSpec,
+    origins,
+    directions,
+    ranges,
+    kind,
+    r_max,
+    *,
+    chunk_size: int,
+    block: int,
+    sub_as_hit: bool,
+    tile=None,
+):
+    """``(R, M, H)`` of the rays: a ``lax.scan`` over blocks of ``block`` rays read with
+    ``dynamic_slice`` (the last block is shifted back to stay in bounds and masks the rays
+    an earlier block took), so temporaries are ``O(block + n_cells)``. ``tile = (row0,
+    rows)``: only the grid rows ``[row0, row0 + rows)`` (see :func:`_walk_block`), arrays
+    of shape ``(rows, *spec.shape[1:])``."""
     dtype = origins.dtype
     n = origins.shape[0]
     block = min(block, n)
@@ -900,20 +929,47 @@ def _accumulate(
         trace = jnp.where(k == SUP, r_max.astype(dtype), rng)
         o, d, checked = check_rays(spec, o, d, jnp.where(use, trace, 0))
         trace = jnp.where(use, checked, trace)
-        r_b, v_b, h_b = _walk_block(spec, o, d, trace, is_hit, use, chunk_size)
+        r_b, v_b, h_b = _walk_block(spec, o, d, trace, is_hit, use, chunk_size, tile)
         r, v, h = carry
         return (r + r_b, v + v_b, h + h_b), None
 
-    n_cells = spec.n_cells
+    shape = spec.shape if tile is None else (tile[1], *spec.shape[1:])
+    n_cells = math.prod(shape)
     init = (jnp.zeros(n_cells, dtype), jnp.zeros(n_cells, jnp.int32), jnp.zeros(n_cells, jnp.int32))
     (r, v, h), _ = _checks.scan(block_body, init, jnp.arange(n_blocks))
-    shape = spec.shape
     return r.reshape(shape), (v - h).reshape(shape), h.reshape(shape)
 
 
 @functools.partial(jax.jit, static_argnames=("sub_as_hit", "threads"))
 def _accumulate_native(spec, origins, directions, ranges, kind, r_max, *, sub_as_hit, threads):
     return _native.accumulate(spec, origins, directions, ranges, kind, r_max, sub_as_hit, threads)
+
+
+def _accumulate_args(spec: GridSpec, rays: RayBatch, sub_rays: str, chunk_size: int):
+    """The argument checks of :func:`accumulate` and its flat ``[n]`` ray arrays in the
+    common float dtype: ``(origins, directions, ranges, kind, r_max)``."""
+    if not isinstance(spec, GridSpec):
+        raise ValueError(f"spec must be a GridSpec, got {type(spec).__name__}")
+    if not isinstance(rays, RayBatch):
+        raise ValueError(f"rays must be a RayBatch, got {type(rays).__name__}")
+    if rays.dim != spec.dim:
+        raise ValueError(f"rays are {rays.dim}-D but spec is a {spec.dim}-D grid")
+    if sub_rays not in ("ignore", "hit"):
+        raise ValueError(f"sub_rays must be 'ignore' or 'hit', got {sub_rays!r}")
+    if isinstance(chunk_size, bool) or not isinstance(chunk_size, int) or chunk_size <= 0:
+        raise ValueError(f"chunk_size must be a positive int, got {chunk_size!r}")
+    flat = rays.flatten()
+    if flat.ranges.shape[0] == 0:
+        raise ValueError("rays is empty")
+    # canonical first: float64 NumPy rays without x64 are float32 rays, with no warning
+    dtype = jnp.result_type(jax.dtypes.canonicalize_dtype(flat.origins.dtype), spec.origin.dtype)
+    return (
+        flat.origins.astype(dtype),
+        flat.directions.astype(dtype),
+        flat.ranges.astype(dtype),
+        flat.kind,
+        jnp.asarray(flat.r_max, dtype),
+    )
 
 
 def accumulate(
@@ -957,29 +1013,10 @@ def accumulate(
         :class:`GridStats` with arrays of shape ``spec.shape``. Counts are exact integers;
         lengths are summed in the rays' float dtype.
     """
-    if not isinstance(rays, RayBatch):
-        raise ValueError(f"rays must be a RayBatch, got {type(rays).__name__}")
-    if rays.dim != spec.dim:
-        raise ValueError(f"rays are {rays.dim}-D but spec is a {spec.dim}-D grid")
-    if sub_rays not in ("ignore", "hit"):
-        raise ValueError(f"sub_rays must be 'ignore' or 'hit', got {sub_rays!r}")
-    if not isinstance(chunk_size, int) or chunk_size <= 0:
-        raise ValueError(f"chunk_size must be a positive int, got {chunk_size!r}")
+    args = _accumulate_args(spec, rays, sub_rays, chunk_size)
     threads = _native.check_threads(threads)
     _native.check_backend(backend)
-    flat = rays.flatten()
-    n = flat.ranges.shape[0]
-    if n == 0:
-        raise ValueError("rays is empty")
-    # canonical first: float64 NumPy rays without x64 are float32 rays, with no warning
-    dtype = jnp.result_type(jax.dtypes.canonicalize_dtype(flat.origins.dtype), spec.origin.dtype)
-    args = (
-        flat.origins.astype(dtype),
-        flat.directions.astype(dtype),
-        flat.ranges.astype(dtype),
-        flat.kind,
-        jnp.asarray(flat.r_max, dtype),
-    )
+    n = args[2].shape[0]
     if _native.resolve(backend) == "native":
         lengths, misses, hits = _accumulate_native(
             spec, *args, sub_as_hit=sub_rays == "hit", threads=threads

@@ -48,15 +48,15 @@ from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
 from .. import _checks
-from ..rays import HIT, SUB, SUP, RayBatch
+from ..rays import SUB, RayBatch
 from . import _native
 from ._grid import (
     _BLOCK_RAYS,
     GridSpec,
     GridStats,
     _accumulate,
-    _walk_block,
-    check_rays,
+    _accumulate_args,
+    _accumulate_blocks,
 )
 from ._primitives import n_chunks_for
 
@@ -98,31 +98,10 @@ def _mesh_axis(mesh, default_axis: str) -> tuple[Mesh, str]:
 
 
 def _flat_rays(spec: GridSpec, rays: RayBatch, sub_rays: str, chunk_size: int):
-    """The checks of :func:`~lidarjax.raytrace.accumulate` and its ``[n]`` ray arrays in
-    the common float dtype, as host arrays: ``(o, d, r, kind, r_max)``."""
-    if not isinstance(spec, GridSpec):
-        raise ValueError(f"spec must be a GridSpec, got {type(spec).__name__}")
-    if not isinstance(rays, RayBatch):
-        raise ValueError(f"rays must be a RayBatch, got {type(rays).__name__}")
-    if rays.dim != spec.dim:
-        raise ValueError(f"rays are {rays.dim}-D but spec is a {spec.dim}-D grid")
-    if sub_rays not in ("ignore", "hit"):
-        raise ValueError(f"sub_rays must be 'ignore' or 'hit', got {sub_rays!r}")
-    if isinstance(chunk_size, bool) or not isinstance(chunk_size, int) or chunk_size <= 0:
-        raise ValueError(f"chunk_size must be a positive int, got {chunk_size!r}")
-    flat = rays.flatten()
-    if flat.ranges.shape[0] == 0:
-        raise ValueError("rays is empty")
-    dtype = np.dtype(
-        jax.dtypes.canonicalize_dtype(np.result_type(flat.origins.dtype, spec.origin.dtype))
-    )
-    return (
-        np.asarray(flat.origins, dtype),
-        np.asarray(flat.directions, dtype),
-        np.asarray(flat.ranges, dtype),
-        np.asarray(flat.kind, np.int32),
-        np.asarray(flat.r_max, dtype),
-    )
+    """:func:`~lidarjax.raytrace.accumulate`'s checks and flat ``[n]`` ray arrays, as host
+    arrays: ``(o, d, r, kind, r_max)``."""
+    o, d, r, k, r_max = _accumulate_args(spec, rays, sub_rays, chunk_size)
+    return (*(np.asarray(x) for x in (o, d, r)), np.asarray(k, np.int32), np.asarray(r_max))
 
 
 def _pad_rays(spec: GridSpec, o, d, r, k, n_total: int):
@@ -311,44 +290,6 @@ def accumulate_sharded(
 # ------------------------------------------------------------------ grids over devices
 
 
-def _walk_tile(spec, origins, directions, lengths, ray_hits, use, chunk_size, row0, rows):
-    """``(R, V, H)`` of one block of rays in the rows ``[row0, row0 + rows)`` of the
-    grid, flat ``[rows * prod(shape[1:])]``: ``_grid._walk_block``'s walk (same sort,
-    chunks and steps over the whole grid) adding only the tile's cells."""
-    return _walk_block(
-        spec, origins, directions, lengths, ray_hits, use, chunk_size, tile=(row0, rows)
-    )
-
-
-def _accumulate_tile(spec, o, d, r, k, r_max, row0, *, rows, chunk_size, block, sub_as_hit):
-    """``_grid._accumulate`` (blocks of ``block`` rays) restricted to one row tile:
-    ``(R, M, H)`` of shape ``(rows, *shape[1:])``."""
-    dtype = o.dtype
-    n = o.shape[0]
-    block = min(block, n)
-    n_blocks = n_chunks_for(n, block)
-    tile_shape = (rows, *spec.shape[1:])
-    n_tile = math.prod(tile_shape)
-
-    def block_body(carry, b):
-        start = jnp.minimum(b * block, n - block)
-        take = lambda x: jax.lax.dynamic_slice_in_dim(x, start, block)  # noqa: E731
-        ob, db, rb, kb = take(o), take(d), take(r), take(k)
-        fresh = start + jnp.arange(block) >= b * block
-        is_hit = (kb == HIT) | ((kb == SUB) & sub_as_hit)
-        use = fresh & (is_hit | (kb == SUP))
-        trace = jnp.where(kb == SUP, r_max.astype(dtype), rb)
-        ob, db, checked = check_rays(spec, ob, db, jnp.where(use, trace, 0))
-        trace = jnp.where(use, checked, trace)
-        r_b, v_b, h_b = _walk_tile(spec, ob, db, trace, is_hit, use, chunk_size, row0, rows)
-        rr, v, h = carry
-        return (rr + r_b, v + v_b, h + h_b), None
-
-    init = (jnp.zeros(n_tile, dtype), jnp.zeros(n_tile, jnp.int32), jnp.zeros(n_tile, jnp.int32))
-    (rr, v, h), _ = _checks.scan(block_body, init, jnp.arange(n_blocks))
-    return rr.reshape(tile_shape), (v - h).reshape(tile_shape), h.reshape(tile_shape)
-
-
 @eqx.filter_jit(donate="all-except-first")
 def _tiled_program(inputs, acc, *, mesh, sub_as_hit, chunk_size):
     """Add one replicated chunk of rays (``inputs = (spec, o, d, r, kind, r_max)``) into
@@ -364,18 +305,17 @@ def _tiled_program(inputs, acc, *, mesh, sub_as_hit, chunk_size):
         row0 = jax.lax.axis_index(axis) * rows
 
         def local():
-            return _accumulate_tile(
+            return _accumulate_blocks(
                 spec,
                 o,
                 d,
                 r,
                 k,
                 r_max,
-                row0,
-                rows=rows,
                 chunk_size=min(chunk_size, o.shape[0]),
                 block=max(_BLOCK_RAYS, chunk_size),
                 sub_as_hit=sub_as_hit,
+                tile=(row0, rows),
             )
 
         (rr, m, h), flags, box["messages"] = _checks._collect(local)
@@ -472,9 +412,6 @@ def accumulate_tiled(
         acc = _checks._reattach(acc, flags, messages)  # concrete flags: read on the host
     lengths, misses, hits = acc
     return GridStats(spec=spec, hits=hits, misses=misses, lengths=lengths)
-
-
-# ------------------------------------------------------------------ poses over devices
 
 
 __all__ = [

@@ -1173,6 +1173,67 @@ class PolesConfig:
 
 
 # --------------------------------------------------------------------------------------
+# slam
+# --------------------------------------------------------------------------------------
+
+SLAM_VARIANTS = ("decay_rate_joint", "decay_rate_alternating", "decay_rate_pose_graph",
+                 "endpoint", "icp_gtsam", "odometry")
+
+
+@dataclass
+class SlamOdometry:
+    sigma_trans_rel: float = _f(nonnegative)
+    sigma_rot_per_m_deg: float = _f(nonnegative)
+    heading_bias_per_m_deg: float = _f(finite)
+    sigma_rot_per_rad: float = _f(nonnegative)
+
+
+@dataclass
+class SlamFrontEnd:
+    resolution_m: float = _f(positive)
+    range_cap_m: float = _f(positive)
+    blur_schedule_m: list[float] = _f(nonempty, each=nonnegative)
+
+
+@dataclass
+class SlamLoops:
+    radius_m: float = _f(positive)
+    min_separation: int = _f(count)
+    every: int = _f(count)
+
+
+@dataclass
+class SlamBackEnd:
+    max_steps: int = _f(count)
+    rounds: int = _f(count)
+
+
+@dataclass
+class SlamExperimentConfig:
+    """``configs/slam.yaml``."""
+
+    seed: int = _f(nonnegative)
+    logs: list[str] = MISSING
+    max_scans: int | None = _f(count)
+    odometry: SlamOdometry = _node(SlamOdometry)
+    front_end: SlamFrontEnd = _node(SlamFrontEnd)
+    loops: SlamLoops = _node(SlamLoops)
+    back_end: SlamBackEnd = _node(SlamBackEnd)
+    variants: list[str] = _f(nonempty, unique)
+    rpe_delta_m: float = _f(positive)
+    map_resolution_m: float = _f(positive)
+    figure_log: str = MISSING
+
+    @staticmethod
+    def check(cfg, problems) -> None:
+        _check_logs_and_figure_log(problems, cfg)
+        _check_names(problems, "variants", list(cfg.variants), SLAM_VARIANTS)
+        if cfg.loops.min_separation <= 10:
+            problems.append(("loops.min_separation", cfg.loops.min_separation,
+                             "must be > 10 (2 * the submap half width)"))
+
+
+# --------------------------------------------------------------------------------------
 # Registry and validation
 # --------------------------------------------------------------------------------------
 
@@ -1187,6 +1248,7 @@ SCHEMAS: dict[str, type] = {
     "polylines": PolylinesConfig,
     "planes": PlanesConfig,
     "poles": PolesConfig,
+    "slam": SlamExperimentConfig,
 }
 """Experiment (config) name -> schema dataclass, stored as ``<name>_schema``."""
 

@@ -133,6 +133,7 @@ TYPE_ERRORS = [
     ("planes", "workers=two", "workers", "two"),
     ("poles", "lidar.n_azimuths=3.5", "lidar.n_azimuths", "3.5"),
     ("poles", "route=7", "route", "7"),
+    ("slam", "back_end.max_steps=many", "back_end.max_steps", "many"),
     ("demo", "grid.resolutoin_m=0.1", "grid.resolutoin_m", "0.1"),  # misspelt key
 ]
 
@@ -214,6 +215,10 @@ VALUE_ERRORS = [
     ("poles", ["localization.c=4"], "localization.c = 4", "<= localization.w"),
     ("poles", ["sessions.p_remove=1.5"], "sessions.p_remove = 1.5", "[0, 1]"),
     ("poles", ["extractor.extent_m=[30.0,30.0]"], "extractor.extent_m = [30.0, 30.0]", "3"),
+    ("slam", ["variants=[decay_rate_joint,orb_slam]"], "variants[1] = 'orb_slam'", "choose from"),
+    ("slam", ["front_end.range_cap_m=0"], "front_end.range_cap_m = 0.0", "> 0"),
+    ("slam", ["loops.min_separation=5"], "loops.min_separation = 5", "> 10"),
+    ("slam", ["max_scans=0"], "max_scans = 0", ">= 1"),
 ]
 
 

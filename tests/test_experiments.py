@@ -522,3 +522,27 @@ def test_polylines_per_log_on_paper_scans_and_on_a_log_file(tmp_path):
     assert Path(path).name == "intel-corrected.log.gz"  # the shared file of the registry
     assert res["scan_indices"] == {"intel-corrected": [30, 62]}
     assert res["scan_selection"] == {"intel-corrected": "explicit"}
+
+
+@pytest.mark.slow
+def test_slam_small(tmp_path):
+    """experiments/slam.py on the first 40 scans of orebro: every variant scored, the TUM
+    files and figures written, and the decay-rate system beats the raw odometry."""
+    pytest.importorskip("gtsam")
+    pytest.importorskip("small_gicp")
+    res = run_experiment(
+        "slam", tmp_path, "logs=[orebro]", "figure_log=orebro", "max_scans=40",
+        "back_end.max_steps=3", "back_end.rounds=1", "loops.min_separation=20",
+    )
+    per = res["logs"]["orebro"]["variants"]
+    assert set(per) == {
+        "odometry", "decay_rate_joint", "decay_rate_alternating", "decay_rate_pose_graph",
+        "endpoint", "icp_gtsam",
+    }
+    for v in per.values():
+        assert np.isfinite(v["ate_rmse_m"]) and np.isfinite(v["p_ref_rmse"])
+    assert per["decay_rate_joint"]["ate_rmse_m"] < per["odometry"]["ate_rmse_m"]
+    assert per["decay_rate_joint"]["front_end_scans_per_s"] > 0
+    for name in ("orebro_ground_truth.tum", "orebro_decay_rate_joint.tum", "trajectories.png",
+                 "errors.png", "results.md"):
+        assert (tmp_path / name).is_file(), name

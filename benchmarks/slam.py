@@ -1,0 +1,114 @@
+"""Decay-rate SLAM (issue #24): front-end scans per second (and real-time factor) and the
+back end's seconds per iteration, with the classical baseline timed in the same run.
+
+On the first ``--scans`` scans of each log with the experiment's drifting odometry
+(``configs/slam.yaml``): the decay-rate front end (:func:`lidarjax.slam.run_front_end`;
+scans/s after its first scan, which compiles), the endpoint front end, the GICP + GTSAM
+baseline's front end, and one call each of :func:`lidarjax.slam.optimize_joint` and
+:func:`lidarjax.slam.optimize_alternating` (``--steps`` L-BFGS iterations; seconds per
+iteration, compilation included once and reported apart). The 1-minute load average is
+recorded before every timing. Writes ``benchmarks/results/slam.json``.
+
+Usage: ``python benchmarks/slam.py [--logs intel fhw orebro] [--scans 200] [--steps 20]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+
+import numpy as np
+from _harness import RESULTS, machine_info, write_json
+
+from lidarjax import slam
+from lidarjax.datasets import fetch, load_carmen
+from lidarjax.sim import wheel_odometry
+from lidarjax.slam._front_end import between_np
+
+OUT = RESULTS / "slam.json"
+
+
+def _scan_rate(stamps):
+    dt = np.diff(stamps)
+    if dt.size == 0 or not np.all(dt > 0):
+        return None
+    return float(dt.size / (stamps[-1] - stamps[0]))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--logs", nargs="+", default=["intel", "fhw", "orebro"])
+    ap.add_argument("--scans", type=int, default=200)
+    ap.add_argument("--steps", type=int, default=20)
+    args = ap.parse_args()
+    report = {"machine": machine_info(), "scans": args.scans, "logs": {}}
+    for name in args.logs:
+        log = load_carmen(fetch(name))
+        n = min(args.scans, log.n_scans)
+        gt = log.poses[:n]
+        ranges = np.minimum(log.ranges_m[:n], log.max_range_m)
+        az = log.azimuths_rad
+        odo = wheel_odometry(
+            gt,
+            seed=0,
+            sigma_trans_rel=0.05,
+            sigma_rot_per_m=float(np.deg2rad(1.0)),
+            heading_bias_per_m=float(np.deg2rad(0.3)),
+            sigma_rot_per_rad=0.02,
+        )
+        rate = _scan_rate(log.timestamps_s[:n])
+        row: dict = {"n_scans": n, "scan_rate_hz": rate}
+        for model in ("decay_rate", "endpoint"):
+            load = os.getloadavg()[0]
+            fe = slam.run_front_end(ranges, az, odo, slam.FrontEndConfig(model=model))
+            per = fe.seconds_per_scan[1:]
+            sps = float(len(per) / per.sum())
+            row[f"front_end_{model}"] = {
+                "load_1min_before": load,
+                "scans_per_s": sps,
+                "median_s_per_scan": float(np.median(per)),
+                "first_scan_s": float(fe.seconds_per_scan[0] + fe.seconds_per_scan[1]),
+                "real_time_factor": None if rate is None else sps / rate,
+            }
+            if model == "decay_rate":
+                start = fe.poses
+        load = os.getloadavg()[0]
+        t = time.perf_counter()
+        ic = slam.icp_pose_graph_slam(ranges, az, odo, max_range_m=log.usable_range_m)
+        row["icp_gtsam"] = {
+            "load_1min_before": load,
+            "seconds_total": time.perf_counter() - t,
+            "front_end_scans_per_s": n / max(ic.seconds_front_end, 1e-9),
+            "seconds_back_end": ic.seconds_back_end,
+        }
+        edges = np.stack([np.arange(n - 1), np.arange(1, n)], 1)
+        inc = between_np(odo[:-1], odo[1:])
+        sig = slam.odometry_sigmas(inc, slam.FrontEndConfig())
+        for kind, f, cfg in (
+            ("joint", slam.optimize_joint, slam.BackEndConfig(max_steps=args.steps)),
+            (
+                "alternating",
+                slam.optimize_alternating,
+                slam.BackEndConfig(max_steps=args.steps, rounds=1),
+            ),
+        ):
+            # first call compiles; the second is timed
+            f(start, az, ranges, edges, inc, sig, slam.BackEndConfig(max_steps=1, rounds=1))
+            load = os.getloadavg()[0]
+            r = f(start, az, ranges, edges, inc, sig, cfg)
+            row[f"back_end_{kind}"] = {
+                "load_1min_before": load,
+                "seconds": r.seconds,
+                "seconds_per_iteration": r.seconds_per_iteration,
+                "iterations": args.steps,
+                "rays": n * az.shape[0],
+            }
+        report["logs"][name] = row
+        print(name, {k: v for k, v in row.items()})
+    write_json(OUT, report)
+    print("wrote", OUT)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,271 @@
+"""Differentiable lidar SLAM with decay-rate fields (issue #24) on the CARMEN logs.
+
+The logs' odometry equals their corrected poses, so a drifting wheel odometry is simulated
+from the corrected poses (``lidarjax.sim.wheel_odometry``, ``odometry`` settings, seed
+``seed``). Every variant starts from it and is scored against the corrected poses:
+
+- ``decay_rate_joint``: :func:`lidarjax.slam.run_slam` (decay-rate front end, loop
+  closures, pose graph, joint optimisation of all poses and the field);
+- ``decay_rate_alternating``: the same with the alternating back end (closed-form grid
+  <-> poses, Eq. 7.10);
+- ``decay_rate_pose_graph``: the same without a back end;
+- ``endpoint``: the same pipeline with the endpoint (likelihood-field) model in the front
+  end and the loop search, no back end;
+- ``icp_gtsam``: the classical baseline (:func:`lidarjax.slam.icp_pose_graph_slam`, GICP
+  scan-to-submap registration and a GTSAM pose graph with loop closures; needs
+  ``lidarjax[slam]``);
+- ``odometry``: the raw odometry.
+
+Per log and variant: absolute trajectory error after SE(2) alignment (RMSE, mean; m),
+relative pose error per ``rpe_delta_m`` of path (translation RMSE m, rotation RMSE deg),
+map quality (p_ref RMSE, Sec. 9.5.1, of the ML grid of the aligned estimate against the
+grid of the corrected poses, over cells both observe), the front end's scans per second and
+real-time factor (scans/s over the log's scan rate, where the log's timestamps give one),
+and wall times per stage. The decay-rate front end runs once per log and is shared by the
+three decay-rate variants (so are its loop closures and pose graph).
+
+Writes ``results.json``, ``results.md``, the trajectories in TUM format
+(``<log>_<variant>.tum`` and ``<log>_ground_truth.tum``; the timestamps are scan indices,
+since some logs' are constant or not monotone), ``trajectories.png`` (map and
+trajectories of ``figure_log`` against the ground truth) and ``errors.png`` (position
+error over the scans). E.g. ``python experiments/slam.py logs=[intel] max_scans=120``.
+"""
+
+from __future__ import annotations
+
+import time
+
+import hydra
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from _common import fmt, output_dir, run_info, save_figure, write_results  # noqa: E402
+from _schemas import validate  # noqa: E402
+from omegaconf import DictConfig, OmegaConf  # noqa: E402
+
+from lidarjax import slam  # noqa: E402
+from lidarjax.datasets import fetch, load_carmen, write_tum  # noqa: E402
+from lidarjax.maps import decay_rate_map  # noqa: E402
+from lidarjax.metrics import (  # noqa: E402
+    absolute_trajectory_error,
+    p_ref_rmse,
+    relative_pose_error,
+)
+from lidarjax.rays import from_scan  # noqa: E402
+from lidarjax.raytrace import GridSpec, accumulate  # noqa: E402
+from lidarjax.sim import wheel_odometry  # noqa: E402
+
+
+def _grid(poses, ranges, az, spec, cap):
+    """ML decay-rate grid and observed-cell mask of the scans at ``poses``."""
+    rays = from_scan(slam._front_end.se2(poses), az, ranges, 0.0, cap)
+    st = accumulate(spec, rays)
+    return np.asarray(decay_rate_map(st, unknown_rate=0.0).rates), np.asarray(st.lengths) > 0
+
+
+def _scores(est, gt, ranges, az, spec, gt_map, cfg) -> dict:
+    a = absolute_trajectory_error(est, gt)
+    r = relative_pose_error(est, gt, delta_m=cfg.rpe_delta_m)
+    rates, seen = _grid(a.aligned, ranges, az, spec, cfg.front_end.range_cap_m)
+    mask = seen & gt_map[1]
+    return {
+        "ate_rmse_m": a.rmse_m,
+        "ate_mean_m": a.mean_m,
+        "ate_max_m": a.max_m,
+        "rpe_trans_rmse_m": r.rmse_m,
+        "rpe_rot_rmse_deg": float(np.rad2deg(r.rotation_rmse_rad)),
+        "p_ref_rmse": float(p_ref_rmse(rates, gt_map[0], mask)),
+        "errors_m": a.errors_m,
+    }
+
+
+def _scan_rate(stamps) -> float | None:
+    dt = np.diff(np.asarray(stamps, float))
+    if dt.size == 0 or not np.all(dt > 0):
+        return None
+    return float(dt.size / (stamps[-1] - stamps[0]))
+
+
+@hydra.main(config_path="../configs", config_name="slam", version_base="1.3")
+def main(cfg: DictConfig) -> None:
+    validate(cfg, "slam")
+    out = output_dir()
+    o = cfg.odometry
+    front = slam.FrontEndConfig(
+        resolution_m=cfg.front_end.resolution_m,
+        range_cap_m=cfg.front_end.range_cap_m,
+        blur_schedule_m=tuple(cfg.front_end.blur_schedule_m),
+    )
+    loops = slam.LoopConfig(
+        radius_m=cfg.loops.radius_m,
+        min_separation=cfg.loops.min_separation,
+        every=cfg.loops.every,
+    )
+    back = slam.BackEndConfig(
+        resolution_m=cfg.front_end.resolution_m,
+        range_cap_m=cfg.front_end.range_cap_m,
+        max_steps=cfg.back_end.max_steps,
+        rounds=cfg.back_end.rounds,
+    )
+    results: dict = {"run_info": run_info(), "logs": {}}
+    rows = []
+    traj = {}
+    for name in cfg.logs:
+        log = load_carmen(fetch(name))
+        n = log.n_scans if cfg.max_scans is None else min(cfg.max_scans, log.n_scans)
+        gt = log.poses[:n]
+        ranges = np.minimum(log.ranges_m[:n], log.max_range_m)
+        az = log.azimuths_rad
+        odo = wheel_odometry(
+            gt,
+            seed=cfg.seed,
+            sigma_trans_rel=o.sigma_trans_rel,
+            sigma_rot_per_m=float(np.deg2rad(o.sigma_rot_per_m_deg)),
+            heading_bias_per_m=float(np.deg2rad(o.heading_bias_per_m_deg)),
+            sigma_rot_per_rad=o.sigma_rot_per_rad,
+        )
+        res = cfg.map_resolution_m
+        lo = np.floor((gt[:, :2].min(0) - front.range_cap_m) / res) - 2
+        hi = np.ceil((gt[:, :2].max(0) + front.range_cap_m) / res) + 2
+        spec = GridSpec(lo * res, res, tuple(int(v) for v in hi - lo))
+        gt_map = _grid(gt, ranges, az, spec, front.range_cap_m)
+        rate = _scan_rate(log.timestamps_s[:n])
+        est: dict[str, np.ndarray] = {"odometry": odo}
+        info: dict[str, dict] = {"odometry": {}}
+        want = set(cfg.variants)
+        dr = [
+            v
+            for v in ("decay_rate_joint", "decay_rate_alternating", "decay_rate_pose_graph")
+            if v in want
+        ]
+        if dr:
+            # the front end, loops and pose graph once; each back end from the pose graph
+            base = slam.run_slam(
+                ranges,
+                az,
+                odo,
+                slam.SlamConfig(front=front, loops=loops, back=back, back_end="none"),
+                progress=True,
+            )
+            fe_rate = n / base.seconds["front_end"]
+            common = {
+                "front_end_scans_per_s": fe_rate,
+                "front_end_rtf": None if rate is None else fe_rate / rate,
+                "n_loops": int(len(base.loops.edges)),
+                "seconds_front_end": base.seconds["front_end"],
+                "seconds_loops": base.seconds["loops"],
+                "seconds_pose_graph": base.seconds["pose_graph"],
+                "front_end_ate_rmse_m": absolute_trajectory_error(base.front_end_poses, gt).rmse_m,
+            }
+            edges = np.stack([np.arange(n - 1), np.arange(1, n)], 1)
+            inc = slam._front_end.between_np(odo[:-1], odo[1:])
+            sig = slam.odometry_sigmas(inc, front)
+            for v in dr:
+                t = time.perf_counter()
+                if v == "decay_rate_pose_graph":
+                    est[v], extra = base.pose_graph_poses, {}
+                else:
+                    f = slam.optimize_joint if v.endswith("joint") else slam.optimize_alternating
+                    b = f(base.pose_graph_poses, az, ranges, edges, inc, sig, back)
+                    est[v] = b.poses
+                    extra = {
+                        "seconds_back_end": b.seconds,
+                        "back_end_seconds_per_iteration": b.seconds_per_iteration,
+                        "objective_nats": b.objective,
+                    }
+                info[v] = {**common, **extra, "seconds_variant": time.perf_counter() - t}
+        if "endpoint" in want:
+            ep = slam.run_slam(
+                ranges,
+                az,
+                odo,
+                slam.SlamConfig(
+                    front=slam.FrontEndConfig(**{**front.__dict__, "model": "endpoint"}),
+                    loops=loops,
+                    back=back,
+                    back_end="none",
+                ),
+                progress=True,
+            )
+            est["endpoint"] = ep.poses
+            info["endpoint"] = {
+                "n_loops": int(len(ep.loops.edges)),
+                "front_end_scans_per_s": n / ep.seconds["front_end"],
+                "seconds": sum(ep.seconds.values()),
+            }
+        if "icp_gtsam" in want:
+            t = time.perf_counter()
+            ic = slam.icp_pose_graph_slam(ranges, az, odo, max_range_m=log.usable_range_m)
+            est["icp_gtsam"] = ic.poses
+            info["icp_gtsam"] = {"n_loops": int(len(ic.loops)), "seconds": time.perf_counter() - t}
+        per = {}
+        write_tum(out / f"{name}_ground_truth.tum", np.arange(n, dtype=float), gt)
+        for v, p in est.items():
+            s = _scores(p, gt, ranges, az, spec, gt_map, cfg)
+            write_tum(out / f"{name}_{v}.tum", np.arange(n, dtype=float), p)
+            per[v] = {**{k: x for k, x in s.items() if k != "errors_m"}, **info[v]}
+            traj[(name, v)] = (absolute_trajectory_error(p, gt).aligned, s["errors_m"])
+            rows.append((name, v, per[v]))
+        results["logs"][name] = {"n_scans": n, "scan_rate_hz": rate, "variants": per}
+        write_results(out, results=results, partial=True)
+        if name == cfg.figure_log:
+            _figures(out, name, gt, gt_map, spec, est, traj)
+    md = [
+        f"| log | variant | ATE RMSE (m) | ATE mean (m) | RPE/{cfg.rpe_delta_m:g} m (m, deg) "
+        "| p_ref RMSE | loops | front end scans/s (RTF) |",
+        "|---|---|---:|---:|---:|---:|---:|---:|",
+    ]
+    for name, v, r in rows:
+        rtf = r.get("front_end_rtf")
+        fe = r.get("front_end_scans_per_s")
+        md.append(
+            f"| {name} | {v} | {fmt(r['ate_rmse_m'])} | {fmt(r['ate_mean_m'])} | "
+            f"{fmt(r['rpe_trans_rmse_m'])}, {fmt(r['rpe_rot_rmse_deg'], 2)} | "
+            f"{fmt(r['p_ref_rmse'])} | {r.get('n_loops', '–')} | "
+            f"{fmt(fe, 2) if fe else '–'}{f' ({rtf:.1f})' if rtf else ''} |"
+        )
+    write_results(
+        out,
+        results=results,
+        markdown="\n".join(md) + "\n",
+        cfg=OmegaConf.create(OmegaConf.to_container(cfg, resolve=True)),
+    )
+    print("\n".join(md))
+
+
+def _figures(out, name, gt, gt_map, spec, est, traj) -> None:
+    fig, ax = plt.subplots(figsize=(8, 8))
+    rates = gt_map[0]
+    extent = [
+        float(spec.origin[0]),
+        float(spec.origin[0] + spec.shape[0] * spec.resolution),
+        float(spec.origin[1]),
+        float(spec.origin[1] + spec.shape[1] * spec.resolution),
+    ]
+    ax.imshow(1 - np.exp(-rates.T), origin="lower", extent=extent, cmap="Greys", vmin=0, vmax=1)
+    ax.plot(gt[:, 0], gt[:, 1], "k-", lw=1.5, label="corrected poses (ground truth)")
+    for v in est:
+        a, _ = traj[(name, v)]
+        ax.plot(a[:, 0], a[:, 1], lw=1, label=f"{v} (aligned)")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.set_aspect("equal")
+    ax.set_title(f"{name}: map of the corrected poses (p_ref), trajectories")
+    ax.legend(loc="best", fontsize=7)
+    save_figure(fig, out / "trajectories.png")
+    fig, ax = plt.subplots(figsize=(8, 4))
+    for v in est:
+        _, e = traj[(name, v)]
+        ax.plot(e, lw=1, label=v)
+    ax.set_yscale("log")
+    ax.set_xlabel("scan index")
+    ax.set_ylabel("position error after SE(2) alignment (m)")
+    ax.set_title(f"{name}: error over time")
+    ax.legend(fontsize=7)
+    save_figure(fig, out / "errors.png")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,26 @@
+"""Differentiable lidar SLAM with decay-rate fields (issue #24): an online scan-to-map
+front end, loop closures, a pose graph, the joint optimisation of all poses and the map,
+and a classical baseline (GICP registration with a GTSAM pose graph)."""
+
+from ._back_end import BackEndConfig as BackEndConfig
+from ._back_end import BackEndResult as BackEndResult
+from ._back_end import joint_objective as joint_objective
+from ._back_end import optimize_alternating as optimize_alternating
+from ._back_end import optimize_joint as optimize_joint
+from ._baselines import IcpSlamResult as IcpSlamResult
+from ._baselines import icp_pose_graph_slam as icp_pose_graph_slam
+from ._front_end import FrontEndConfig as FrontEndConfig
+from ._front_end import FrontEndResult as FrontEndResult
+from ._front_end import GridMap as GridMap
+from ._front_end import MatchResult as MatchResult
+from ._front_end import match_scan as match_scan
+from ._front_end import run_front_end as run_front_end
+from ._loops import LoopConfig as LoopConfig
+from ._loops import Loops as Loops
+from ._loops import find_loops as find_loops
+from ._pipeline import SlamConfig as SlamConfig
+from ._pipeline import SlamResult as SlamResult
+from ._pipeline import odometry_sigmas as odometry_sigmas
+from ._pipeline import run_slam as run_slam
+from ._pose_graph import PoseGraphResult as PoseGraphResult
+from ._pose_graph import optimize_pose_graph as optimize_pose_graph

@@ -1,0 +1,559 @@
+"""Online front end of decay-rate SLAM: scan-to-map matching on a continuous decay-rate
+field, started from raw odometry, with the map's grid statistics updated additively.
+
+For scan ``k`` the predicted pose is the previous estimate composed with the odometry
+increment. The map is a growing 2-D grid of hits ``H`` and travelled lengths ``R``
+(Eq. 7.10's sufficient statistics, :func:`~lidarjax.raytrace.accumulate`), to which every
+matched scan adds its rays; a window of the grid around the prediction is turned into the
+ML decay rates ``H / R``, Gaussian-blurred (coarse to fine) and interpolated bilinearly
+(:class:`~lidarjax.maps.SmoothDecayRateField`), and the scan's decay-rate log-likelihood
+(:func:`~lidarjax.maps.field_log_likelihood`) is maximised over its SE(2) pose with
+optimistix (:func:`~lidarjax.localization.refine.refine_pose`).
+
+Two measures keep the matching unbiased where the map ends:
+
+* rays whose end point falls in a cell no ray of the map has traversed (``R = 0`` in the
+  cell and its 8 neighbours, judged at the predicted pose) are left out of the objective:
+  their end-point term would pull them toward mapped space;
+* unmapped cells have rate 0 in the window (a ray through them costs nothing), so rays
+  into unexplored space are neither rewarded nor penalised.
+
+A Gaussian prior on the increment (the odometry's) keeps degenerate scenes (a corridor)
+well posed.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+
+import jax
+import jax.numpy as jnp
+import jaxlie
+import numpy as np
+from jaxtyping import Array, Float
+
+from ..maps import DecayRateMap, SmoothDecayRateField, blur
+from ..rays import HIT, from_scan
+from ..raytrace import GridSpec, accumulate
+
+__all__ = [
+    "FrontEndConfig",
+    "FrontEndResult",
+    "GridMap",
+    "MatchResult",
+    "match_scan",
+    "run_front_end",
+]
+
+
+def _wrap(a):
+    return (a + np.pi) % (2 * np.pi) - np.pi
+
+
+def se2(xy_yaw) -> jaxlie.SE2:
+    """``jaxlie.SE2`` of ``[..., 3]`` poses ``(x, y, yaw)``."""
+    xy_yaw = jnp.asarray(xy_yaw)
+    return jaxlie.SE2.from_xy_theta(xy_yaw[..., 0], xy_yaw[..., 1], xy_yaw[..., 2])
+
+
+def xy_yaw(pose: jaxlie.SE2) -> Array:
+    """``[..., 3]`` ``(x, y, yaw)`` of a ``jaxlie.SE2``."""
+    return jnp.concatenate([pose.translation(), pose.rotation().as_radians()[..., None]], -1)
+
+
+def compose_np(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``a * b`` for ``[..., 3]`` NumPy poses ``(x, y, yaw)``."""
+    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
+    return np.stack(
+        [
+            a[..., 0] + c * b[..., 0] - s * b[..., 1],
+            a[..., 1] + s * b[..., 0] + c * b[..., 1],
+            _wrap(a[..., 2] + b[..., 2]),
+        ],
+        -1,
+    )
+
+
+def between_np(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``a^-1 * b`` for ``[..., 3]`` NumPy poses ``(x, y, yaw)``."""
+    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
+    dx, dy = b[..., 0] - a[..., 0], b[..., 1] - a[..., 1]
+    return np.stack([c * dx + s * dy, -s * dx + c * dy, _wrap(b[..., 2] - a[..., 2])], -1)
+
+
+@dataclasses.dataclass(frozen=True)
+class FrontEndConfig:
+    """Settings of the front end (defaults hold on the shared CARMEN logs; none is tuned
+    per log).
+
+    Attributes:
+        resolution_m: map cell size (m).
+        range_cap_m: readings at or beyond this range are treated as no-returns traced to
+            it (m), both in the map and in matching; far readings are the least accurate.
+        blur_schedule_m: Gaussian blur widths (m) of the coarse-to-fine matching stages.
+        window_m: half width of the square map window a scan is matched against (m); at
+            least ``range_cap_m`` plus the largest expected motion between scans.
+        n_nodes: midpoint nodes per ray of the optical depth.
+        max_steps: BFGS iterations per stage.
+        prior_sigma_xy_m, prior_sigma_yaw_rad: standard deviations of the Gaussian prior of
+            :func:`match_scan` when none is given (m, rad).
+        odometry_sigma_rel, odometry_sigma_xy_m: the front end's prior on each increment:
+            translation standard deviation ``odometry_sigma_xy_m + odometry_sigma_rel * d``
+            (m) for an odometry increment of length ``d`` (m).
+        odometry_sigma_yaw_per_m, odometry_sigma_yaw_rel, odometry_sigma_yaw_rad: heading
+            standard deviation ``odometry_sigma_yaw_rad + odometry_sigma_yaw_per_m * d +
+            odometry_sigma_yaw_rel * |dyaw|`` (rad). Loose defaults (about twice the
+            drift of typical wheel odometry); a user who knows the odometry sets them.
+        ray_floor: per-ray log-likelihood floor (nats), for outlier readings.
+        rate_floor: end-point rate floor (1/m).
+        gap_cells: the optical depth of a HIT ray is integrated to ``gap_cells`` cells (plus
+            twice the stage's blur) short of its end point. The interpolated rates of a
+            wall rise over a cell (and the blur) before it, and a ray that pays that rise
+            is pulled toward the sensor; measured on intel against maps from the corrected
+            poses of the neighbouring scans (26 scans), the mean along-track error was
+            -2.7 cm with no gap and -1.4 cm with 1.5 cells (median |error| 4.0 -> 3.0 cm).
+        prior_hits, prior_length_m: pseudo-counts of the window's rates ``(H + a) / (R + b)``
+            (both 0: the ML rates ``H / R``, never-seen cells 0).
+        mask_unmapped: leave rays ending in never-traversed cells out of the objective.
+        model: ``"decay_rate"`` (the default) or ``"endpoint"``: the likelihood-field
+            baseline, ``log`` of the blurred hit indicator at the end points (no free-space
+            term), on the same map, matching and masks.
+    """
+
+    resolution_m: float = 0.05
+    range_cap_m: float = 10.0
+    blur_schedule_m: tuple[float, ...] = (0.3, 0.1, 0.0)
+    window_m: float = 12.0
+    n_nodes: int = 256
+    max_steps: int = 60
+    prior_sigma_xy_m: float = 0.5
+    prior_sigma_yaw_rad: float = 0.2
+    odometry_sigma_rel: float = 0.1
+    odometry_sigma_xy_m: float = 0.02
+    odometry_sigma_yaw_per_m: float = 0.03
+    odometry_sigma_yaw_rel: float = 0.05
+    odometry_sigma_yaw_rad: float = 0.01
+    ray_floor: float = -10.0
+    rate_floor: float = 1e-3
+    gap_cells: float = 1.5
+    model: str = "decay_rate"
+    prior_hits: float = 0.0
+    prior_length_m: float = 0.0
+    mask_unmapped: bool = True
+
+    def __post_init__(self):
+        for name in (
+            "resolution_m",
+            "range_cap_m",
+            "window_m",
+            "prior_sigma_xy_m",
+            "prior_sigma_yaw_rad",
+        ):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise ValueError(f"{name} must be a positive finite number, got {v!r}")
+        if self.window_m < self.range_cap_m:
+            raise ValueError(
+                f"window_m ({self.window_m}) must be >= range_cap_m ({self.range_cap_m})"
+            )
+        if len(self.blur_schedule_m) == 0 or any(
+            not (math.isfinite(b) and b >= 0) for b in self.blur_schedule_m
+        ):
+            raise ValueError(
+                f"blur_schedule_m must be non-empty, finite, >= 0: {self.blur_schedule_m}"
+            )
+        for name in (
+            "odometry_sigma_rel",
+            "odometry_sigma_yaw_per_m",
+            "odometry_sigma_yaw_rel",
+            "gap_cells",
+            "prior_hits",
+            "prior_length_m",
+        ):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+                raise ValueError(f"{name} must be finite and >= 0, got {v!r}")
+        if self.model not in ("decay_rate", "endpoint"):
+            raise ValueError(f"model must be 'decay_rate' or 'endpoint', got {self.model!r}")
+        for name in ("n_nodes", "max_steps"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v <= 0:
+                raise ValueError(f"{name} must be a positive int, got {v!r}")
+        if not (math.isfinite(self.ray_floor)):
+            raise ValueError(f"ray_floor must be finite, got {self.ray_floor!r}")
+        if not (math.isfinite(self.rate_floor) and self.rate_floor >= 0):
+            raise ValueError(f"rate_floor must be finite and >= 0, got {self.rate_floor!r}")
+
+    @property
+    def window_cells(self) -> int:
+        """Cells per side of the matching window."""
+        return int(math.ceil(2 * self.window_m / self.resolution_m))
+
+
+class GridMap:
+    """A growing 2-D grid of decay-rate statistics (hits ``H``, lengths ``R`` in m), in
+    NumPy float64, to which scans are added (or removed) at given poses.
+
+    Each scan is traced on a small grid around its pose with
+    :func:`~lidarjax.raytrace.accumulate` and added at its offset; the grid grows (by
+    whole blocks) when a scan reaches beyond it. Cells are aligned to multiples of the
+    resolution, so windows and whole maps line up exactly.
+    """
+
+    def __init__(self, resolution_m: float, range_cap_m: float, *, block_m: float = 20.0):
+        if not (math.isfinite(resolution_m) and resolution_m > 0):
+            raise ValueError(f"resolution_m must be positive and finite, got {resolution_m!r}")
+        if not (math.isfinite(range_cap_m) and range_cap_m > 0):
+            raise ValueError(f"range_cap_m must be positive and finite, got {range_cap_m!r}")
+        self.res = float(resolution_m)
+        self.cap = float(range_cap_m)
+        self._block = max(1, int(round(block_m / self.res)))
+        self.lo = None  # [2] int: index of cell (0, 0) on the global lattice
+        self.hits = np.zeros((0, 0))
+        self.lengths = np.zeros((0, 0))
+        self._n_local = int(math.ceil(2 * self.cap / self.res)) + 4
+
+    def _ensure(self, lo: np.ndarray, hi: np.ndarray) -> None:
+        """Grow so that lattice cells ``lo .. hi - 1`` are inside."""
+        if self.lo is None:
+            self.lo = lo - self._block
+            shape = hi - lo + 2 * self._block
+            self.hits = np.zeros(tuple(shape))
+            self.lengths = np.zeros(tuple(shape))
+            return
+        cur_hi = self.lo + np.asarray(self.hits.shape)
+        new_lo = np.where(lo < self.lo, lo - self._block, self.lo)
+        new_hi = np.where(hi > cur_hi, hi + self._block, cur_hi)
+        if np.all(new_lo == self.lo) and np.all(new_hi == cur_hi):
+            return
+        pad = [(int(self.lo[i] - new_lo[i]), int(new_hi[i] - cur_hi[i])) for i in range(2)]
+        self.hits = np.pad(self.hits, pad)
+        self.lengths = np.pad(self.lengths, pad)
+        self.lo = new_lo
+
+    def add_scan(self, pose_xy_yaw, azimuths, ranges, *, sign: float = 1.0) -> None:
+        """Add (``sign=1``) or remove (``sign=-1``) one scan's statistics at a pose."""
+        pose_xy_yaw = np.asarray(pose_xy_yaw, dtype=float)
+        lo = np.floor(pose_xy_yaw[:2] / self.res).astype(np.int64) - self._n_local // 2
+        hi = lo + self._n_local
+        self._ensure(lo, hi)
+        spec = GridSpec(lo * self.res, self.res, (self._n_local, self._n_local))
+        rays = from_scan(se2(pose_xy_yaw), azimuths, ranges, 0.0, self.cap)
+        st = accumulate(spec, rays)
+        i, j = (lo - self.lo).astype(int)
+        n = self._n_local
+        self.hits[i : i + n, j : j + n] += sign * np.asarray(st.hits, dtype=float)
+        self.lengths[i : i + n, j : j + n] += sign * np.asarray(st.lengths, dtype=float)
+
+    def _overlap(self, lo: np.ndarray, n: int):
+        """Slices ``(global, window)`` of the overlap of the window at ``lo`` with the grid,
+        or None."""
+        if self.lo is None:
+            return None
+        a = np.maximum(lo, self.lo)
+        b = np.minimum(lo + n, self.lo + np.asarray(self.hits.shape))
+        if not np.all(b > a):
+            return None
+        src = tuple(slice(int(a[k] - self.lo[k]), int(b[k] - self.lo[k])) for k in range(2))
+        dst = tuple(slice(int(a[k] - lo[k]), int(b[k] - lo[k])) for k in range(2))
+        return src, dst
+
+    def window_lo(self, center_xy, n: int) -> np.ndarray:
+        """Lattice index of the lower corner of the ``[n n]`` window around ``center_xy``."""
+        return np.floor(np.asarray(center_xy, float) / self.res).astype(np.int64) - n // 2
+
+    def window(self, center_xy, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(H, R, origin)`` of the ``[n n]`` window of cells around ``center_xy`` (zeros
+        beyond the grid); ``origin`` (m) is its lower corner."""
+        lo = self.window_lo(center_xy, n)
+        h, r = np.zeros((n, n)), np.zeros((n, n))
+        ov = self._overlap(lo, n)
+        if ov is not None:
+            src, dst = ov
+            h[dst], r[dst] = self.hits[src], self.lengths[src]
+        return h, r, lo * self.res
+
+    def rates(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(rates, origin)``: ML rates ``H / R`` of the whole grid (0 where ``R = 0``)."""
+        seen = self.lengths > 1e-9
+        rates = np.where(seen, self.hits / np.where(seen, self.lengths, 1.0), 0.0)
+        return rates, self.lo * self.res
+
+
+def _dilate(mask):
+    """3x3 max filter of a 2-D boolean array."""
+    p = jnp.pad(mask, 1)
+    n0, n1 = mask.shape
+    out = mask
+    for di in range(3):
+        for dj in range(3):
+            out = out | p[di : di + n0, dj : dj + n1]
+    return out
+
+
+def _scan_log_likelihoods(field, pose, az, rng, cfg: FrontEndConfig, gap=0.0):
+    """``[b]`` per-ray decay-rate log-likelihoods of one scan at ``pose`` (readings at or
+    beyond the range cap are no-returns to it), floored at ``cfg.ray_floor``; the optical
+    depth of HIT rays is integrated to ``r - gap`` (m)."""
+    rays = from_scan(pose, az, rng, 0.0, cfg.range_cap_m)
+    hit = rays.kind == HIT
+    ell = jnp.where(hit, jnp.maximum(rays.ranges - gap, 0.0), cfg.range_cap_m)
+    if cfg.model == "endpoint":
+        depth = jnp.zeros(ell.shape, ell.dtype)
+    else:
+        depth = field.integral(rays.origins, rays.directions, ell)
+    end = rays.origins + jnp.where(hit, rays.ranges, 0.0)[:, None] * rays.directions
+    lam = field.decay_rate(end)
+    ll = jnp.where(hit, jnp.log(lam + cfg.rate_floor), 0.0) - depth
+    return jnp.maximum(ll, cfg.ray_floor)
+
+
+def _ray_weights(seen, origin, res, az, rng, pose, cfg: FrontEndConfig):
+    """``[b]`` 1 for rays in the objective, 0 for HIT rays ending in unmapped cells (no
+    traversed length in the end point's cell and its 8 neighbours) or off the window."""
+    n = seen.shape[0]
+    rays = from_scan(pose, az, rng, 0.0, cfg.range_cap_m)
+    end = rays.origins + jnp.where(rays.kind == HIT, rays.ranges, 0.0)[:, None] * rays.directions
+    idx = jnp.floor((end - origin) / res).astype(jnp.int32)
+    inside = jnp.all((idx >= 0) & (idx < n), axis=-1)
+    near = _dilate(seen)[jnp.clip(idx[:, 0], 0, n - 1), jnp.clip(idx[:, 1], 0, n - 1)]
+    return jnp.where(rays.kind == HIT, inside & near, True)
+
+
+def _match_impl(rates, seen, origin, az, rng, pose0, pred, sigmas, cfg: FrontEndConfig):
+    """Jitted core of :func:`match_scan` (``cfg`` static): ``(pose [3], n_used, mean
+    log-likelihood per used ray (nats), [3 3] information of the pose (negative Hessian
+    of the last stage's log-likelihood in the tangent space))``."""
+    from ..localization.refine import refine_pose
+
+    res = cfg.resolution_m
+    n = rates.shape[0]
+    spec = GridSpec(origin, res, (n, n))
+    pose0 = se2(pose0)
+    pred_pose = se2(pred)
+    # rays whose end points fall in unmapped space are left out (judged at pose0)
+    w = _ray_weights(seen, origin, res, az, rng, pose0, cfg)
+    w = (w if cfg.mask_unmapped else jnp.ones_like(w)).astype(rates.dtype)
+    inv_sig = 1.0 / sigmas
+    zero = jnp.zeros((), rates.dtype)
+
+    def stage_objective(b):
+        if cfg.model == "endpoint":
+            b = max(b, res / 2)  # a likelihood field needs some width
+        field = SmoothDecayRateField(
+            DecayRateMap(spec, blur(rates, b / res), zero), n_nodes=cfg.n_nodes
+        )
+        gap = cfg.gap_cells * res + 2.0 * b
+
+        def objective(p):
+            ll = _scan_log_likelihoods(field, p, az, rng, cfg, gap)
+            dev = jaxlie.manifold.rminus(p, pred_pose) * inv_sig
+            return jnp.sum(w * ll) - 0.5 * jnp.sum(dev**2)
+
+        return field, objective
+
+    stages = [stage_objective(b) for b in cfg.blur_schedule_m]
+    field, final = stages[-1]
+    # coarse to fine from pose0 ...
+    pose = pose0
+    for _, objective in stages:
+        pose, _ = refine_pose(objective, pose, max_steps=cfg.max_steps)
+    # ... and the last stage alone from pose0: a blurred stage can lead into a wrong basin
+    # (a corridor's repeating doors); the better final objective wins
+    direct, _ = refine_pose(final, pose0, max_steps=cfg.max_steps)
+    better = final(direct) > final(pose)
+    pose = jaxlie.SE2(jnp.where(better, direct.parameters(), pose.parameters()))
+
+    def data_term(delta):
+        p = jaxlie.manifold.rplus(pose, delta)
+        return jnp.sum(w * _scan_log_likelihoods(field, p, az, rng, cfg, cfg.gap_cells * res))
+
+    d0 = jnp.zeros(3, rates.dtype)
+    n_used = jnp.sum(w)
+    mean_ll = data_term(d0) / jnp.maximum(n_used, 1.0)
+    info = -jax.hessian(data_term)(d0)
+    return xy_yaw(pose), n_used, mean_ll, info
+
+
+_match_jit = jax.jit(_match_impl, static_argnames="cfg")
+
+
+@dataclasses.dataclass(frozen=True)
+class MatchResult:
+    """One scan-to-map match.
+
+    Attributes:
+        pose: ``[3]`` matched pose ``(x m, y m, yaw rad)``.
+        n_used: rays in the objective.
+        mean_log_likelihood: mean decay-rate log-likelihood per used ray (nats).
+        information: ``[3 3]`` negative Hessian of the scan's log-likelihood at the match in
+            the pose's tangent space (``(v_x m, v_y m, omega rad)``, sensor frame).
+    """
+
+    pose: np.ndarray
+    n_used: int
+    mean_log_likelihood: float
+    information: np.ndarray
+
+    @property
+    def min_translation_information(self) -> float:
+        """Smallest eigenvalue of the translation block of :attr:`information` (1/m^2):
+        small in a corridor, where the match slides along the walls."""
+        return float(np.linalg.eigvalsh(self.information[:2, :2])[0])
+
+
+def match_scan(
+    grid: GridMap,
+    azimuths: Float[Array, " b"],
+    ranges: Float[Array, " b"],
+    pose0_xy_yaw: np.ndarray,
+    cfg: FrontEndConfig,
+    *,
+    prior_xy_yaw: np.ndarray | None = None,
+    prior_sigmas: np.ndarray | None = None,
+) -> MatchResult:
+    """Match one scan against the map window around ``pose0_xy_yaw``: coarse-to-fine
+    maximisation of its decay-rate log-likelihood plus the Gaussian prior.
+
+    Args:
+        grid: the map statistics.
+        azimuths: ``[b]`` beam angles (rad); ranges: ``[b]`` readings (m).
+        pose0_xy_yaw: ``[3]`` start pose ``(x m, y m, yaw rad)``.
+        cfg: settings.
+        prior_xy_yaw: ``[3]`` mean of the Gaussian pose prior (default: the start pose).
+        prior_sigmas: ``[3]`` its standard deviations (m, m, rad) in the prior's frame
+            (default: ``cfg.prior_sigma_xy_m`` twice and ``cfg.prior_sigma_yaw_rad``).
+
+    Returns:
+        :class:`MatchResult`.
+    """
+    pose0 = np.asarray(pose0_xy_yaw, float)
+    prior = pose0 if prior_xy_yaw is None else np.asarray(prior_xy_yaw, float)
+    h, r, origin = grid.window(pose0[:2], cfg.window_cells)
+    seen = r > 1e-9
+    if cfg.model == "endpoint":
+        rates = (h > 0).astype(float)
+    elif cfg.prior_length_m > 0:
+        rates = (h + cfg.prior_hits) / (r + cfg.prior_length_m)
+    else:
+        rates = np.where(seen, h / np.where(seen, r, 1.0), 0.0)
+    if prior_sigmas is None:
+        prior_sigmas = (cfg.prior_sigma_xy_m, cfg.prior_sigma_xy_m, cfg.prior_sigma_yaw_rad)
+    sig = np.asarray(prior_sigmas, float)
+    if sig.shape != (3,) or not np.all(np.isfinite(sig) & (sig > 0)):
+        raise ValueError(f"prior_sigmas must be 3 positive finite numbers, got {sig}")
+    dt = jnp.result_type(float)
+    pose, n_used, mean_ll, info = _match_jit(
+        jnp.asarray(rates, dt),
+        jnp.asarray(seen),
+        jnp.asarray(origin, dt),
+        jnp.asarray(azimuths, dt),
+        jnp.asarray(ranges, dt),
+        jnp.asarray(pose0, dt),
+        jnp.asarray(prior, dt),
+        jnp.asarray(sig, dt),
+        cfg,
+    )
+    return MatchResult(
+        np.asarray(pose, float), int(n_used), float(mean_ll), np.asarray(info, float)
+    )
+
+
+@dataclasses.dataclass(frozen=True)
+class FrontEndResult:
+    """Output of :func:`run_front_end`.
+
+    Attributes:
+        poses: ``[N 3]`` matched poses ``(x m, y m, yaw rad)``.
+        n_used: ``[N]`` rays in each scan's objective (0 for the first scan).
+        seconds: wall time of the run (s), first compilation included.
+        seconds_per_scan: ``[N]`` wall time per scan (s).
+        grid: the final :class:`GridMap`.
+    """
+
+    poses: np.ndarray
+    n_used: np.ndarray
+    seconds: float
+    seconds_per_scan: np.ndarray
+    grid: GridMap
+
+
+def _check_inputs(ranges_m, azimuths_rad, odometry_xy_yaw):
+    rng = np.asarray(ranges_m, dtype=float)
+    az = np.asarray(azimuths_rad, dtype=float)
+    odo = np.asarray(odometry_xy_yaw, dtype=float)
+    if rng.ndim != 2 or rng.shape[0] == 0 or rng.shape[1] == 0:
+        raise ValueError(f"ranges_m must have shape [N, B] with N, B > 0, got {rng.shape}")
+    if az.shape != (rng.shape[1],):
+        raise ValueError(f"azimuths_rad must have shape [{rng.shape[1]}], got {az.shape}")
+    if odo.shape != (rng.shape[0], 3):
+        raise ValueError(f"odometry_xy_yaw must have shape [{rng.shape[0]}, 3], got {odo.shape}")
+    if not np.all(np.isfinite(rng)) or np.any(rng < 0):
+        raise ValueError("ranges_m must be finite and >= 0 (give no-returns as the max reading)")
+    if not np.all(np.isfinite(az)):
+        raise ValueError("azimuths_rad must be finite")
+    if not np.all(np.isfinite(odo)):
+        raise ValueError("odometry_xy_yaw must be finite")
+    return rng, az, odo
+
+
+def run_front_end(
+    ranges_m: np.ndarray,
+    azimuths_rad: np.ndarray,
+    odometry_xy_yaw: np.ndarray,
+    cfg: FrontEndConfig | None = None,
+    *,
+    initial_pose: np.ndarray | None = None,
+    progress: bool = False,
+) -> FrontEndResult:
+    """Decay-rate lidar odometry: match every scan against the map of the scans before it.
+
+    Args:
+        ranges_m: ``[N B]`` readings (m); no-returns as the sensor's maximum reading (any
+            value ``>= cfg.range_cap_m`` is treated as one).
+        azimuths_rad: ``[B]`` beam angles (rad).
+        odometry_xy_yaw: ``[N 3]`` raw odometry poses; only increments are used.
+        cfg: settings (default :class:`FrontEndConfig`).
+        initial_pose: ``[3]`` pose of the first scan (default: the first odometry pose).
+        progress: show a tqdm progress bar.
+
+    Returns:
+        :class:`FrontEndResult`.
+
+    Raises:
+        ValueError: bad shapes or values, naming the argument.
+    """
+    cfg = FrontEndConfig() if cfg is None else cfg
+    rng, az, odo = _check_inputs(ranges_m, azimuths_rad, odometry_xy_yaw)
+    n = rng.shape[0]
+    poses = np.zeros((n, 3))
+    poses[0] = odo[0] if initial_pose is None else np.asarray(initial_pose, float)
+    n_used = np.zeros(n, dtype=np.int64)
+    secs = np.zeros(n)
+    grid = GridMap(cfg.resolution_m, cfg.range_cap_m)
+    t_start = time.perf_counter()
+    grid.add_scan(poses[0], az, rng[0])
+    secs[0] = time.perf_counter() - t_start
+    inc = between_np(odo[:-1], odo[1:])
+    it = range(1, n)
+    if progress:
+        from tqdm.auto import tqdm
+
+        it = tqdm(it, desc="front end", unit="scan")
+    for k in it:
+        t0 = time.perf_counter()
+        pred = compose_np(poses[k - 1], inc[k - 1])
+        d = float(np.hypot(*inc[k - 1, :2]))
+        sxy = cfg.odometry_sigma_xy_m + cfg.odometry_sigma_rel * d
+        syaw = (
+            cfg.odometry_sigma_yaw_rad
+            + cfg.odometry_sigma_yaw_per_m * d
+            + cfg.odometry_sigma_yaw_rel * abs(float(inc[k - 1, 2]))
+        )
+        m = match_scan(grid, az, rng[k], pred, cfg, prior_sigmas=(sxy, sxy, syaw))
+        poses[k], n_used[k] = m.pose, m.n_used
+        grid.add_scan(poses[k], az, rng[k])
+        secs[k] = time.perf_counter() - t0
+    return FrontEndResult(poses, n_used, time.perf_counter() - t_start, secs, grid)

@@ -1,4 +1,4 @@
-"""SE(2) pose-graph optimisation: Levenberg-Marquardt on the manifold with a dense Cholesky
+"""SE(2) pose-graph optimisation: Levenberg-Marquardt on the manifold with a dense LU
 solve and Cauchy-robust (IRLS) edges, the back end of decay-rate SLAM (issue #24).
 
 Poses are ``(x, y, yaw)`` rows (m, m, rad). An edge ``(i, j)`` carries a measurement
@@ -17,7 +17,7 @@ Each iteration linearises every edge in the tangent spaces of its two poses (``T
 exp(delta)``; a 3x6 Jacobian block per edge by ``jax.jacfwd``, batched with ``vmap``),
 recomputes the IRLS weights, scatter-adds ``H = J^T W J`` and ``g = J^T W r`` into a dense
 ``[3n, 3n]`` system, removes the gauge node's rows and columns (its pose stays exactly
-``poses0[fixed]``), and solves ``(H + lambda diag(H)) delta = -g`` by Cholesky. A step is
+``poses0[fixed]``), and solves ``(H + lambda diag(H)) delta = -g`` by LU. A step is
 accepted only if the robust cost decreases (then ``lambda`` shrinks), otherwise ``lambda``
 grows (both bounded). The loop stops after ``max_iters`` iterations, when an accepted step
 decreases the cost by less than ``tol`` relative, when a step no longer moves the poses
@@ -25,7 +25,7 @@ decreases the cost by less than ``tol`` relative, when a step no longer moves th
 is one jitted program (shapes static, no host round trips).
 
 Dense storage costs ``(3n)^2`` floats (60 MB for ``n = 910`` poses in float64) and each
-iteration one dense Cholesky factorisation, ``O((3n)^3)``.
+iteration one dense LU factorisation, ``O((3n)^3)``.
 """
 
 from __future__ import annotations
@@ -130,7 +130,7 @@ def _solve(poses0, edges, z_xy_yaw, sigmas, robust, c, fixed, max_iters, tol):
     """The Levenberg-Marquardt loop. Each pass evaluates the candidate poses once
     (residuals, Jacobians, weights, cost: the only copy of the edge model in the program),
     accepts or rejects them, and solves for the next candidate from the normal equations
-    of the current poses (kept in the loop state, so a rejected step costs one Cholesky)."""
+    of the current poses (kept in the loop state, so a rejected step costs one LU solve)."""
     dtype = poses0.dtype
     n = poses0.shape[0]
     e = edges.shape[0]

@@ -36,6 +36,8 @@ from jaxtyping import Array, Float
 from ..maps import DecayRateMap, SmoothDecayRateField, field_log_likelihood
 from ..rays import from_scan
 from ..raytrace import GridSpec, accumulate
+from ._front_end import se2 as _se2
+from ._front_end import xy_yaw as _xy_yaw
 
 __all__ = [
     "BackEndConfig",
@@ -109,14 +111,6 @@ class BackEndResult:
     objective: np.ndarray
     seconds: float
     seconds_per_iteration: float
-
-
-def _se2(p):
-    return jaxlie.SE2.from_xy_theta(p[..., 0], p[..., 1], p[..., 2])
-
-
-def _xy_yaw(pose):
-    return jnp.concatenate([pose.translation(), pose.rotation().as_radians()[..., None]], -1)
 
 
 def _grid_spec(poses: np.ndarray, cfg: BackEndConfig) -> GridSpec:
@@ -205,9 +199,24 @@ def _check(poses0, azimuths, ranges, edges, measurements, sigmas):
 
 
 @eqx.filter_jit
-def _lbfgs(fn, x0, max_steps):
+def _lbfgs(fn, x0, args, max_steps):
     solver = optx.LBFGS(rtol=1e-8, atol=1e-8)
-    return optx.minimise(fn, solver, x0, max_steps=max_steps, throw=False)
+    return optx.minimise(fn, solver, x0, args, max_steps=max_steps, throw=False)
+
+
+def _setup(poses0, azimuths, ranges, edges, measurements, sigmas, cfg):
+    """Checked inputs as arrays of the default float dtype, the field's grid, the gauge
+    mask (the first pose is held fixed) and the objective's scale (rays)."""
+    p0, az, rg, e, m, s = _check(poses0, azimuths, ranges, edges, measurements, sigmas)
+    dt = jnp.result_type(float)
+    arrays = tuple(jnp.asarray(x, dt) for x in (p0, az, rg)) + (
+        jnp.asarray(e),
+        jnp.asarray(m, dt),
+        jnp.asarray(s, dt),
+    )
+    n = p0.shape[0]
+    free = jnp.ones((n, 1), dt).at[0].set(0.0)
+    return arrays, _grid_spec(p0, cfg), free, float(n * az.shape[0])
 
 
 def optimize_joint(
@@ -235,30 +244,17 @@ def optimize_joint(
         :class:`BackEndResult`.
     """
     cfg = BackEndConfig() if cfg is None else cfg
-    p0, az, rg, e, m, s = _check(poses0, azimuths, ranges, edges, measurements, sigmas)
-    dt = jnp.result_type(float)
-    spec = _grid_spec(p0, cfg)
-    args = (
-        jnp.asarray(p0, dt),
-        jnp.asarray(az, dt),
-        jnp.asarray(rg, dt),
-        jnp.asarray(e),
-        jnp.asarray(m, dt),
-        jnp.asarray(s, dt),
-    )
+    args, spec, free, scale = _setup(poses0, azimuths, ranges, edges, measurements, sigmas, cfg)
     t0 = time.perf_counter()
     theta0 = _ml_params(spec, args[0], args[1], args[2], cfg)
-    n = p0.shape[0]
-    free = jnp.ones((n, 1), dt).at[0].set(0.0)  # the first pose is the gauge
-    scale = float(n * az.shape[0])
 
     def fn(x, _):
         d, th = x
         return -joint_objective(d * free, th, *args, spec, cfg) / scale
 
-    x0 = (jnp.zeros((n, 3), dt), theta0)
+    x0 = (jnp.zeros_like(args[0]), theta0)
     j0 = -float(fn(x0, None)) * scale
-    sol = _lbfgs(fn, x0, cfg.max_steps)
+    sol = _lbfgs(fn, x0, None, cfg.max_steps)
     d, th = sol.value
     j1 = -float(fn((d, th), None)) * scale
     secs = time.perf_counter() - t0
@@ -282,35 +278,25 @@ def optimize_alternating(
     poses (Eq. 7.10, with the pseudo-counts), then L-BFGS over all poses with that field
     fixed (same objective ``J`` as :func:`optimize_joint`). Arguments as there."""
     cfg = BackEndConfig() if cfg is None else cfg
-    p0, az, rg, e, m, s = _check(poses0, azimuths, ranges, edges, measurements, sigmas)
-    dt = jnp.result_type(float)
-    spec = _grid_spec(p0, cfg)
-    azj, rgj, ej, mj, sj = (
-        jnp.asarray(az, dt),
-        jnp.asarray(rg, dt),
-        jnp.asarray(e),
-        jnp.asarray(m, dt),
-        jnp.asarray(s, dt),
+    (p0, azj, rgj, ej, mj, sj), spec, free, scale = _setup(
+        poses0, azimuths, ranges, edges, measurements, sigmas, cfg
     )
-    n = p0.shape[0]
-    free = jnp.ones((n, 1), dt).at[0].set(0.0)
-    scale = float(n * az.shape[0])
+
+    def fn(d, th_poses):  # one function for every round: compiled once
+        th, poses = th_poses
+        return -joint_objective(d * free, th, poses, azj, rgj, ej, mj, sj, spec, cfg) / scale
+
     t0 = time.perf_counter()
-    poses = jnp.asarray(p0, dt)
+    poses = p0
+    d0 = jnp.zeros_like(p0)
     values = []
     th = None
     for _ in range(cfg.rounds):
         th = _ml_params(spec, poses, azj, rgj, cfg)
-
-        def fn(d, th_fixed, poses=poses):
-            return (
-                -joint_objective(d * free, th_fixed, poses, azj, rgj, ej, mj, sj, spec, cfg) / scale
-            )
-
         if not values:
-            values.append(-float(fn(jnp.zeros((n, 3), dt), th)) * scale)
-        sol = _lbfgs_args(fn, jnp.zeros((n, 3), dt), th, cfg.max_steps)
-        values.append(-float(fn(sol.value, th)) * scale)
+            values.append(-float(fn(d0, (th, poses))) * scale)
+        sol = _lbfgs(fn, d0, (th, poses), cfg.max_steps)
+        values.append(-float(fn(sol.value, (th, poses))) * scale)
         poses = _xy_yaw(jaxlie.manifold.rplus(_se2(poses), sol.value * free))
     secs = time.perf_counter() - t0
     return BackEndResult(
@@ -320,9 +306,3 @@ def optimize_alternating(
         secs,
         secs / cfg.rounds,
     )
-
-
-@eqx.filter_jit
-def _lbfgs_args(fn, x0, args, max_steps):
-    solver = optx.LBFGS(rtol=1e-8, atol=1e-8)
-    return optx.minimise(fn, solver, x0, args, max_steps=max_steps, throw=False)

@@ -297,6 +297,36 @@ def test_match_scan_recovers_a_perturbed_pose(office_short):
             assert m.min_translation_information > 0
 
 
+def test_match_scan_stays_within_the_gate(office_short):
+    """A prior that is confident and 0.6 m off the map's truth: the match must not leave
+    ``gate_sigmas`` of it (the truth, 12 sigma away, is implausible under the prior); with
+    the gate opened, the same prior is overruled by the scan."""
+    truth, ranges, _ = office_short
+    k = 15
+    grid = GridMap(0.05, 10.0)
+    for q in range(0, truth.shape[0], 2):
+        grid.add_scan(truth[q], AZ, ranges[q])
+    prior = truth[k] + np.array([0.6, 0.0, 0.0])
+    sig = np.array([0.05, 0.05, 0.02])
+    for gate in (5.0, 3.0):
+        cfg = FrontEndConfig(gate_sigmas=gate)
+        m = match_scan(grid, AZ, ranges[k], truth[k], cfg, prior_xy_yaw=prior, prior_sigmas=sig)
+        dev = _between(prior, m.pose) / sig
+        assert np.sqrt(np.sum(dev**2)) <= gate + 1e-6
+        assert not m.plausible  # both optima (near the truth) were outside the gate
+    m = match_scan(
+        grid,
+        AZ,
+        ranges[k],
+        truth[k],
+        FrontEndConfig(gate_sigmas=1e3),
+        prior_xy_yaw=prior,
+        prior_sigmas=sig,
+    )
+    assert m.plausible
+    assert np.hypot(*(m.pose[:2] - prior[:2])) > 0.3  # the scan overrules the prior
+
+
 # ----------------------------------------------------------------------------------------
 # 4. the growing grid map
 
@@ -502,6 +532,15 @@ def test_run_slam_end_to_end():
         ({"max_steps": 2.5}, "max_steps"),
         ({"ray_floor": float("-inf")}, "ray_floor"),
         ({"rate_floor": -1.0}, "rate_floor"),
+        ({"search_xy_m": -0.1}, "search_xy_m"),
+        ({"search_yaw_rad": float("nan")}, "search_yaw_rad"),
+        ({"search_step_yaw_rad": 0.0}, "search_step_yaw_rad"),
+        ({"search_blur_m": -1.0}, "search_blur_m"),
+        ({"search_exclude_m": 0.0}, "search_exclude_m"),
+        ({"gate_sigmas": 0.0}, "gate_sigmas"),
+        ({"gate_stiffness": 0.5}, "gate_stiffness"),
+        ({"local_map_scans": -1}, "local_map_scans"),
+        ({"local_map_scans": 2.0}, "local_map_scans"),
     ],
 )
 def test_front_end_config_rejects_bad_values(kwargs, name):
@@ -599,6 +638,10 @@ def test_back_ends_reject_bad_inputs(change, name, optimize):
         ({"start_offsets_rad": float("inf")}, "start_offsets_rad"),
         ({"min_information": -1.0}, "min_information"),
         ({"min_used_fraction": 1.5}, "min_used_fraction"),
+        ({"search_xy_m": -1.0}, "search_xy_m"),
+        ({"search_yaw_rad": float("nan")}, "search_yaw_rad"),
+        ({"min_margin": -1.0}, "min_margin"),
+        ({"exclude_m": float("inf")}, "exclude_m"),
     ],
 )
 def test_loop_config_rejects_bad_values(kwargs, name):

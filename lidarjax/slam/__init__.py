@@ -24,3 +24,4 @@ from ._pipeline import odometry_sigmas as odometry_sigmas
 from ._pipeline import run_slam as run_slam
 from ._pose_graph import PoseGraphResult as PoseGraphResult
 from ._pose_graph import optimize_pose_graph as optimize_pose_graph
+from ._search import correlative_search as correlative_search

@@ -5,7 +5,10 @@ estimated positions lie within ``radius_m``; the nearest ``max_candidates`` (at 
 ``min_separation`` apart in index) are tried. Scan ``i`` is matched (coarse to fine,
 :func:`~lidarjax.slam.match_scan`) against the decay-rate map of scans
 ``j - submap_half .. j + submap_half`` from a grid of start poses around the estimated
-relative pose; the best match is accepted when
+relative pose; the match starts with an exhaustive end-point search of
+``search_xy_m`` x ``search_yaw_rad`` around the estimate
+(:func:`~lidarjax.slam.correlative_search`), so a drifted estimate still finds the
+right basin. The best match is accepted when
 
 * at least ``min_used_fraction`` of the rays lie in the mapped part of the submap,
 * its mean log-likelihood per used ray is at least ``min_mean_log_likelihood`` nats,
@@ -13,7 +16,9 @@ relative pose; the best match is accepted when
   translation information at least ``min_information`` per ray, 1/m^2): a scan in a
   corridor slides along it, and such a "closure" is rejected,
 * the correction from the estimate is at most ``max_correction_m``,
-* at least two of the start poses end within ``agree_m`` of the best match.
+* the search's best score beats the best lattice pose farther than ``exclude_m`` from it
+  by at least ``min_margin`` nats (a second, equally good place is ambiguity),
+* with several start poses, at least two end within ``agree_m`` of the best match.
 
 Accepted closures become relative-pose factors ``pose_j^-1 pose_i`` for the pose graph.
 """
@@ -39,30 +44,38 @@ class LoopConfig:
         min_separation: index distance between a scan and its candidates.
         max_candidates: candidates tried per scan.
         submap_half: the submap holds scans ``j - submap_half .. j + submap_half``.
-        start_offsets_m: the start poses are the estimate and the estimate shifted by this
-            along +-x and +-y (m).
+        start_offsets_m: the start poses are the estimate and (if > 0) the estimate shifted
+            by this along +-x and +-y (m).
         start_offsets_rad: ... and turned by +- this (rad).
         min_used_fraction: see module docstring.
         min_mean_log_likelihood: nats per used ray.
         min_information: 1/m^2 per used ray.
         max_correction_m: largest accepted correction of the estimate (m).
         every: try every ``every``-th scan (1: all).
-        agree_m: at least two start poses must end within this distance (m) of the best
-            match (a basin only one start finds is rejected).
+        agree_m: with several starts, at least two must end within this distance (m) of
+            the best match (a basin only one start finds is rejected).
+        search_xy_m, search_yaw_rad: half widths of the exhaustive search around each
+            start (m, rad; 0 and 0: none).
+        exclude_m: the search's runner-up is its best pose farther than this (m).
+        min_margin: least margin (nats) of the search's best score over the runner-up.
     """
 
     radius_m: float = 4.0
     min_separation: int = 30
     max_candidates: int = 1
     submap_half: int = 5
-    start_offsets_m: float = 0.5
+    start_offsets_m: float = 0.0
     start_offsets_rad: float = 0.0
     min_used_fraction: float = 0.6
     min_mean_log_likelihood: float = 0.5
     min_information: float = 20.0
     max_correction_m: float = 3.0
-    every: int = 5
+    every: int = 2
     agree_m: float = 0.05
+    search_xy_m: float = 1.0
+    search_yaw_rad: float = 0.2
+    exclude_m: float = 0.3
+    min_margin: float = 15.0
 
     def __post_init__(self):
         for name in ("radius_m", "max_correction_m", "agree_m"):
@@ -81,7 +94,15 @@ class LoopConfig:
             raise ValueError(f"submap_half must be an int >= 0, got {self.submap_half!r}")
         if self.min_separation <= 2 * self.submap_half:
             raise ValueError("min_separation must exceed 2 * submap_half")
-        for name in ("start_offsets_m", "start_offsets_rad", "min_information"):
+        for name in (
+            "start_offsets_m",
+            "start_offsets_rad",
+            "min_information",
+            "search_xy_m",
+            "search_yaw_rad",
+            "exclude_m",
+            "min_margin",
+        ):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise ValueError(f"{name} must be finite and >= 0, got {v!r}")
@@ -139,6 +160,12 @@ def find_loops(
     """
     cfg = LoopConfig() if cfg is None else cfg
     fcfg = FrontEndConfig() if front_cfg is None else front_cfg
+    fcfg = dataclasses.replace(
+        fcfg,
+        search_xy_m=cfg.search_xy_m,
+        search_yaw_rad=cfg.search_yaw_rad,
+        search_exclude_m=cfg.exclude_m,
+    )
     rng = np.asarray(ranges_m, float)
     az = np.asarray(azimuths_rad, float)
     poses = np.asarray(poses, float)
@@ -185,12 +212,16 @@ def find_loops(
             used = best.n_used / az.shape[0]
             info = best.min_translation_information / max(best.n_used, 1)
             corr = np.hypot(*(best.pose[:2] - guess[:2]))
+            searched = cfg.search_xy_m > 0 or cfg.search_yaw_rad > 0
+            margin = best.search_score - best.search_runner_up
             if (
                 used >= cfg.min_used_fraction
                 and best.mean_log_likelihood >= cfg.min_mean_log_likelihood
                 and info >= cfg.min_information
                 and corr <= cfg.max_correction_m
                 and (agree >= 2 or len(matches) == 1)
+                and (not searched or margin >= cfg.min_margin)
+                and best.plausible
             ):
                 edges.append((j, i))
                 meas.append(best.pose)

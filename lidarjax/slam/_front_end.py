@@ -136,7 +136,7 @@ class FrontEndConfig:
             plausible) the last stage from the prior's mean under a prior
             ``gate_stiffness`` times tighter, or the prior's mean itself. Front-end ATE on
             the shared logs (intel / fhw / orebro, with the search): no gate 0.517 /
-            0.386 / 2.289 m; 7: see the results page / 0.428 / 1.133 m; 5: - / 1.425 /
+            0.386 / 2.289 m; 7: 0.171 / 0.428 / 1.133 m; 5: - / 1.425 /
             1.122 m (a gate of 5 rejects fhw's correct snaps back onto the map).
         gate_stiffness: see ``gate_sigmas`` (>= 1).
     """

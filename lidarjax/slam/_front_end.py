@@ -405,7 +405,11 @@ def _match_impl(rates, seen, origin, az, rng, pose0, pred, sigmas, cfg: FrontEnd
     else:
         start, s_best, s_runner = pose0, zero, zero
 
-    def stage_objective(b):
+    def whitened(p):
+        """The pose's deviation from the prior's mean in prior standard deviations."""
+        return jaxlie.manifold.rminus(p, pred_pose) * inv_sig
+
+    def stage_objective(b, stiffness=1.0):
         if cfg.model == "endpoint":
             b = max(b, res / 2)  # a likelihood field needs some width
         field = SmoothDecayRateField(
@@ -415,8 +419,7 @@ def _match_impl(rates, seen, origin, az, rng, pose0, pred, sigmas, cfg: FrontEnd
 
         def objective(p):
             ll = _scan_log_likelihoods(field, p, az, rng, cfg, gap)
-            dev = jaxlie.manifold.rminus(p, pred_pose) * inv_sig
-            return jnp.sum(w * ll) - 0.5 * jnp.sum(dev**2)
+            return jnp.sum(w * ll) - 0.5 * stiffness**2 * jnp.sum(whitened(p) ** 2)
 
         return field, objective
 
@@ -434,8 +437,7 @@ def _match_impl(rates, seen, origin, az, rng, pose0, pred, sigmas, cfg: FrontEnd
     def plausible(p):
         # within gate_sigmas (Mahalanobis) of the prior: a match farther off slid along a
         # corridor or snapped onto an aliased structure
-        dev = jaxlie.manifold.rminus(p, pred_pose) * inv_sig
-        return jnp.sum(dev**2) <= cfg.gate_sigmas**2
+        return jnp.sum(whitened(p) ** 2) <= cfg.gate_sigmas**2
 
     f_staged = jnp.where(plausible(pose), final(pose), -jnp.inf)
     f_direct = jnp.where(plausible(direct), final(direct), -jnp.inf)
@@ -446,14 +448,8 @@ def _match_impl(rates, seen, origin, az, rng, pose0, pred, sigmas, cfg: FrontEnd
         # neither is plausible: the last stage from the prediction under a prior
         # ``gate_stiffness`` times tighter (the constrained directions still follow the
         # scan); if even that leaves the gate, the prediction itself
-        k = cfg.gate_stiffness
-
-        def objective(p):
-            ll = _scan_log_likelihoods(field, p, az, rng, cfg, cfg.gap_cells * res)
-            dev = jaxlie.manifold.rminus(p, pred_pose) * (k * inv_sig)
-            return jnp.sum(w * ll) - 0.5 * jnp.sum(dev**2)
-
-        q, _ = refine_pose(objective, pred_pose, max_steps=cfg.max_steps)
+        _, stiff = stage_objective(cfg.blur_schedule_m[-1], cfg.gate_stiffness)
+        q, _ = refine_pose(stiff, pred_pose, max_steps=cfg.max_steps)
         return jnp.where(plausible(q), q.parameters(), pred_pose.parameters())
 
     pose = jaxlie.SE2(jax.lax.cond(ok, lambda: pick, stiff_fallback))

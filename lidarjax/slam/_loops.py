@@ -175,6 +175,7 @@ def find_loops(
     if az.shape != (rng.shape[1],):
         raise ValueError(f"azimuths_rad must have shape [{rng.shape[1]}], got {az.shape}")
     starts = _starts(cfg)
+    searched = cfg.search_xy_m > 0 or cfg.search_yaw_rad > 0
     edges, meas = [], []
     n_tried = 0
     it = range(cfg.min_separation, n, cfg.every)
@@ -212,7 +213,6 @@ def find_loops(
             used = best.n_used / az.shape[0]
             info = best.min_translation_information / max(best.n_used, 1)
             corr = np.hypot(*(best.pose[:2] - guess[:2]))
-            searched = cfg.search_xy_m > 0 or cfg.search_yaw_rad > 0
             margin = best.search_score - best.search_runner_up
             if (
                 used >= cfg.min_used_fraction

@@ -327,6 +327,31 @@ def test_match_scan_stays_within_the_gate(office_short):
     assert np.hypot(*(m.pose[:2] - prior[:2])) > 0.3  # the scan overrules the prior
 
 
+def test_match_scan_ambiguous_gate_follows_the_search_margin(office_short):
+    """The tight gate (``ambiguous_gate_sigmas``) applies exactly when the search's margin
+    is below ``ambiguous_margin``. Started at the truth under a confident prior 0.6 m off
+    (12 sigma): with every scene ambiguous the match stays within 2 sigma of the prior;
+    with none ambiguous (and the wide gate open) the scan overrules the prior."""
+    truth, ranges, _ = office_short
+    k = 15
+    grid = GridMap(0.05, 10.0)
+    for q in range(0, truth.shape[0], 2):
+        grid.add_scan(truth[q], AZ, ranges[q])
+    prior = truth[k] + np.array([0.6, 0.0, 0.0])
+    sig = np.array([0.05, 0.05, 0.02])
+
+    def match(**kw):
+        cfg = FrontEndConfig(gate_sigmas=1e3, **kw)
+        return match_scan(grid, AZ, ranges[k], truth[k], cfg, prior_xy_yaw=prior, prior_sigmas=sig)
+
+    m = match(ambiguous_margin=1e9, ambiguous_gate_sigmas=2.0)
+    assert np.sqrt(np.sum((_between(prior, m.pose) / sig) ** 2)) <= 2.0 + 1e-6
+    assert not m.plausible
+    m = match(ambiguous_margin=0.0, ambiguous_gate_sigmas=2.0)
+    assert m.plausible
+    assert np.hypot(*(m.pose[:2] - prior[:2])) > 0.3
+
+
 # ----------------------------------------------------------------------------------------
 # 4. the growing grid map
 
@@ -539,6 +564,8 @@ def test_run_slam_end_to_end():
         ({"search_exclude_m": 0.0}, "search_exclude_m"),
         ({"gate_sigmas": 0.0}, "gate_sigmas"),
         ({"gate_stiffness": 0.5}, "gate_stiffness"),
+        ({"ambiguous_margin": -1.0}, "ambiguous_margin"),
+        ({"ambiguous_gate_sigmas": 0.0}, "ambiguous_gate_sigmas"),
         ({"local_map_scans": -1}, "local_map_scans"),
         ({"local_map_scans": 2.0}, "local_map_scans"),
     ],

@@ -139,6 +139,14 @@ class FrontEndConfig:
             0.386 / 2.289 m; 7: 0.171 / 0.428 / 1.133 m; 5: - / 1.425 /
             1.122 m (a gate of 5 rejects fhw's correct snaps back onto the map).
         gate_stiffness: see ``gate_sigmas`` (>= 1).
+        ambiguous_margin, ambiguous_gate_sigmas: where the search's best score beats its
+            runner-up (the best lattice pose farther than ``search_exclude_m``) by less
+            than ``ambiguous_margin`` nats, the scene is ambiguous (a corridor seen
+            end-on, repeating doors) and the gate is ``ambiguous_gate_sigmas`` instead.
+            Measured on the front ends of the shared logs (no ambiguous gate): orebro's
+            three wrong matches beyond 3 sigma (0.8-2.1 m off) had margins of 0.5-10.5
+            nats, its correct one 48.6; fhw's correct snaps beyond 3 sigma 31-133 nats
+            and its one wrong one (0.44 m) 5.3. Needs the search (no search: no effect).
     """
 
     resolution_m: float = 0.05
@@ -169,6 +177,8 @@ class FrontEndConfig:
     local_map_scans: int = 0
     gate_sigmas: float = 7.0
     gate_stiffness: float = 3.0
+    ambiguous_margin: float = 15.0
+    ambiguous_gate_sigmas: float = 3.0
 
     def __post_init__(self):
         for name in (
@@ -208,11 +218,21 @@ class FrontEndConfig:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v <= 0:
                 raise ValueError(f"{name} must be a positive int, got {v!r}")
-        for name in ("search_xy_m", "search_yaw_rad", "search_blur_m"):
+        for name in (
+            "search_xy_m",
+            "search_yaw_rad",
+            "search_blur_m",
+            "ambiguous_margin",
+        ):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
                 raise ValueError(f"{name} must be finite and >= 0, got {v!r}")
-        for name in ("search_step_yaw_rad", "search_exclude_m", "gate_sigmas"):
+        for name in (
+            "search_step_yaw_rad",
+            "search_exclude_m",
+            "gate_sigmas",
+            "ambiguous_gate_sigmas",
+        ):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise ValueError(f"{name} must be a positive finite number, got {v!r}")
@@ -434,10 +454,17 @@ def _match_impl(rates, seen, origin, az, rng, pose0, pred, sigmas, cfg: FrontEnd
     # doors); the better final objective wins
     direct, _ = refine_pose(final, pose0, max_steps=cfg.max_steps)
 
+    # the gate: gate_sigmas, or ambiguous_gate_sigmas where the search found a second,
+    # nearly as good pose (margin below ambiguous_margin nats: a corridor, repeating doors)
+    gate = cfg.gate_sigmas
+    if n_xy > 0 or n_yaw > 0:
+        tight = min(cfg.ambiguous_gate_sigmas, cfg.gate_sigmas)
+        gate = jnp.where(s_best - s_runner < cfg.ambiguous_margin, tight, gate)
+
     def plausible(p):
-        # within gate_sigmas (Mahalanobis) of the prior: a match farther off slid along a
+        # within the gate (Mahalanobis) of the prior: a match farther off slid along a
         # corridor or snapped onto an aliased structure
-        return jnp.sum(whitened(p) ** 2) <= cfg.gate_sigmas**2
+        return jnp.sum(whitened(p) ** 2) <= gate**2
 
     f_staged = jnp.where(plausible(pose), final(pose), -jnp.inf)
     f_direct = jnp.where(plausible(direct), final(direct), -jnp.inf)

@@ -136,16 +136,16 @@ class FrontEndConfig:
             plausible) the last stage from the prior's mean under a prior
             ``gate_stiffness`` times tighter, or the prior's mean itself. Front-end ATE on
             the shared logs (intel / fhw / orebro, with the search, before the ambiguous
-            gate below): no gate 0.517 /
-            0.386 / 2.289 m; 7: 0.171 / 0.428 / 1.133 m; 5: - / 1.425 /
-            1.122 m (a gate of 5 rejects fhw's correct snaps back onto the map).
+            gate below): no gate 0.517 / 0.386 / 2.289 m; 7: 0.171 / 0.428 / 1.133 m;
+            5: - / 1.425 / 1.122 m (a gate of 5 rejects fhw's correct snaps back onto
+            the map).
         gate_stiffness: see ``gate_sigmas`` (>= 1).
         ambiguous_margin, ambiguous_gate_sigmas: where the search's best score beats its
             runner-up (the best lattice pose farther than ``search_exclude_m``) by less
             than ``ambiguous_margin`` nats, the scene is ambiguous (a corridor seen
-            end-on, repeating doors) and the gate is the smaller of ``ambiguous_gate_sigmas``
-            and ``gate_sigmas``.
-            Measured on the shared logs' front ends: without it, orebro's three wrong
+            end-on, repeating doors) and the gate is the smaller of
+            ``ambiguous_gate_sigmas`` and ``gate_sigmas``. Measured on the shared logs'
+            front ends: without it, orebro's three wrong
             matches beyond 3 sigma (0.8-2.1 m off) had margins of 0.5-10.5 nats, its
             correct one 48.6; with it, orebro's front-end ATE went 1.133 -> 0.366 m and
             fhw's 0.428 -> 0.430 m (all 16 of fhw's matches beyond 3 sigma: 31-123

@@ -1176,8 +1176,14 @@ class PolesConfig:
 # slam
 # --------------------------------------------------------------------------------------
 
-SLAM_VARIANTS = ("decay_rate_joint", "decay_rate_alternating", "decay_rate_pose_graph",
-                 "endpoint", "icp_gtsam", "odometry")
+SLAM_VARIANTS = (
+    "decay_rate_joint",
+    "decay_rate_alternating",
+    "decay_rate_pose_graph",
+    "endpoint",
+    "icp_gtsam",
+    "odometry",
+)
 
 
 @dataclass
@@ -1203,6 +1209,11 @@ class SlamLoops:
 
 
 @dataclass
+class SlamPoseGraph:
+    robust_chain: bool = _f()
+
+
+@dataclass
 class SlamBackEnd:
     max_steps: int = _f(count)
     rounds: int = _f(count)
@@ -1218,6 +1229,7 @@ class SlamExperimentConfig:
     odometry: SlamOdometry = _node(SlamOdometry)
     front_end: SlamFrontEnd = _node(SlamFrontEnd)
     loops: SlamLoops = _node(SlamLoops)
+    pose_graph: SlamPoseGraph = _node(SlamPoseGraph)
     back_end: SlamBackEnd = _node(SlamBackEnd)
     variants: list[str] = _f(nonempty, unique)
     rpe_delta_m: float = _f(positive)
@@ -1229,8 +1241,13 @@ class SlamExperimentConfig:
         _check_logs_and_figure_log(problems, cfg)
         _check_names(problems, "variants", list(cfg.variants), SLAM_VARIANTS)
         if cfg.loops.min_separation <= 10:
-            problems.append(("loops.min_separation", cfg.loops.min_separation,
-                             "must be > 10 (2 * the submap half width)"))
+            problems.append(
+                (
+                    "loops.min_separation",
+                    cfg.loops.min_separation,
+                    "must be > 10 (2 * the submap half width)",
+                )
+            )
 
 
 # --------------------------------------------------------------------------------------

@@ -146,7 +146,13 @@ def main(cfg: DictConfig) -> None:
                 ranges,
                 az,
                 odo,
-                slam.SlamConfig(front=front, loops=loops, back=back, back_end="none"),
+                slam.SlamConfig(
+                    front=front,
+                    loops=loops,
+                    back=back,
+                    back_end="none",
+                    robust_chain=cfg.pose_graph.robust_chain,
+                ),
                 progress=True,
             )
             fe_rate = n / base.seconds["front_end"]
@@ -186,6 +192,7 @@ def main(cfg: DictConfig) -> None:
                     loops=loops,
                     back=back,
                     back_end="none",
+                    robust_chain=cfg.pose_graph.robust_chain,
                 ),
                 progress=True,
             )

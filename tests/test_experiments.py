@@ -533,19 +533,34 @@ def test_slam_small(tmp_path):
     pytest.importorskip("gtsam")
     pytest.importorskip("small_gicp")
     res = run_experiment(
-        "slam", tmp_path, "logs=[orebro]", "figure_log=orebro", "max_scans=40",
-        "back_end.max_steps=3", "back_end.rounds=1", "loops.min_separation=20",
+        "slam",
+        tmp_path,
+        "logs=[orebro]",
+        "figure_log=orebro",
+        "max_scans=40",
+        "back_end.max_steps=3",
+        "back_end.rounds=1",
+        "loops.min_separation=20",
     )
     per = res["logs"]["orebro"]["variants"]
     assert set(per) == {
-        "odometry", "decay_rate_joint", "decay_rate_alternating", "decay_rate_pose_graph",
-        "endpoint", "icp_gtsam",
+        "odometry",
+        "decay_rate_joint",
+        "decay_rate_alternating",
+        "decay_rate_pose_graph",
+        "endpoint",
+        "icp_gtsam",
     }
     for v in per.values():
         assert np.isfinite(v["ate_rmse_m"]) and np.isfinite(v["p_ref_rmse"])
     assert per["icp_gtsam"]["ate_rmse_m"] < per["odometry"]["ate_rmse_m"]
     assert per["decay_rate_joint"]["front_end_scans_per_s"] > 0
     assert per["decay_rate_joint"]["seconds_back_end"] > 0
-    for name in ("orebro_ground_truth.tum", "orebro_decay_rate_joint.tum", "trajectories.png",
-                 "errors.png", "results.md"):
+    for name in (
+        "orebro_ground_truth.tum",
+        "orebro_decay_rate_joint.tum",
+        "trajectories.png",
+        "errors.png",
+        "results.md",
+    ):
         assert (tmp_path / name).is_file(), name

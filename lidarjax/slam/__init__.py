@@ -20,6 +20,7 @@ from ._loops import Loops as Loops
 from ._loops import find_loops as find_loops
 from ._pipeline import SlamConfig as SlamConfig
 from ._pipeline import SlamResult as SlamResult
+from ._pipeline import front_end_pose_graph as front_end_pose_graph
 from ._pipeline import odometry_sigmas as odometry_sigmas
 from ._pipeline import run_slam as run_slam
 from ._pose_graph import PoseGraphResult as PoseGraphResult

@@ -4,7 +4,9 @@ back end's seconds per iteration, with the classical baseline timed in the same 
 On the first ``--scans`` scans of each log with the experiment's drifting odometry
 (``configs/slam.yaml``): the decay-rate front end (:func:`lidarjax.slam.run_front_end`;
 scans/s after its first scan, which compiles), the endpoint front end, the GICP + GTSAM
-baseline's front end, and one call each of :func:`lidarjax.slam.optimize_joint` and
+baseline's front end, the pose graph over the front end's increments and its loop
+closures (:func:`lidarjax.slam.front_end_pose_graph`, plain and robust chain: best of 3
+after a compiling call), and one call each of :func:`lidarjax.slam.optimize_joint` and
 :func:`lidarjax.slam.optimize_alternating` (``--steps`` L-BFGS iterations; seconds per
 iteration, after a compiling call). Front-end scans/s leave out the first two scans (the
 first match compiles; reported as ``first_scan_s``). The 1-minute load average is
@@ -74,6 +76,24 @@ def main() -> None:
             }
             if model == "decay_rate":
                 start = fe.poses
+        loops = slam.find_loops(ranges, az, start)
+        for robust in (False, True):
+            cfg = slam.SlamConfig(robust_chain=robust)
+            slam.front_end_pose_graph(start, odo, loops, cfg).poses.block_until_ready()
+            load = os.getloadavg()[0]
+            times = []
+            for _ in range(3):
+                t = time.perf_counter()
+                pg = slam.front_end_pose_graph(start, odo, loops, cfg)
+                pg.poses.block_until_ready()
+                times.append(time.perf_counter() - t)
+            row["pose_graph_robust_chain" if robust else "pose_graph_plain_chain"] = {
+                "load_1min_before": load,
+                "seconds_best_of_3": min(times),
+                "iterations": int(pg.n_iters),
+                "poses": n,
+                "loops": int(len(loops.edges)),
+            }
         load = os.getloadavg()[0]
         t = time.perf_counter()
         ic = slam.icp_pose_graph_slam(ranges, az, odo, max_range_m=log.usable_range_m)

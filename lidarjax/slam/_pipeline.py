@@ -41,7 +41,8 @@ class SlamConfig:
         chain_sigma_xy_m, chain_sigma_yaw_rad: standard deviations of the front end's
             increments in the pose graph.
         loop_sigma_xy_m, loop_sigma_yaw_rad: of the loop closures.
-        cauchy_scale: Cauchy kernel scale of the loop closures (whitened units).
+        cauchy_scale: Cauchy kernel scale of the loop closures (and, with
+            ``robust_chain``, of the front end's increments), in whitened units.
         robust_chain: the front end's increments get the Cauchy kernel too, and the raw
             odometry's increments join the graph as plain factors weighted by the front
             end's odometry model (:func:`odometry_sigmas`); False: the front end's
@@ -50,8 +51,9 @@ class SlamConfig:
             so a graph of plain increments stays where the front end is (ATE intel
             0.196 -> 0.192 m). With the robust chain the snap's increment is down-weighted,
             the odometry bridges it, and the loops spread the correction over the loop:
-            pose graph ATE on the shared logs' front ends (drift seed 0) intel 0.192 ->
-            0.076 m, orebro 0.356 -> 0.276 m (seed 1: intel 0.209 -> 0.095 m).
+            pose graph ATE on the shared logs (drift seed 0) intel 0.192 -> 0.076 m,
+            fhw 0.358 -> 0.138 m, orebro 0.356 -> 0.276 m (seed 1: intel 0.209 ->
+            0.095 m).
     """
 
     front: FrontEndConfig = dataclasses.field(default_factory=FrontEndConfig)

@@ -1,16 +1,18 @@
-"""Decay-rate SLAM (issue #24): front-end scans per second (and real-time factor) and the
-back end's seconds per iteration, with the classical baseline timed in the same run.
+"""Decay-rate SLAM (issue #24): front-end scans per second (and real-time factor) and the back
+end's seconds per iteration, with the classical baseline timed in the same run.
 
 On the first ``--scans`` scans of each log with the experiment's drifting odometry
 (``configs/slam.yaml``): the decay-rate front end (:func:`lidarjax.slam.run_front_end`;
 scans/s after its first scan, which compiles), the endpoint front end, the GICP + GTSAM
-baseline's front end, the pose graph over the front end's increments and its loop
-closures (:func:`lidarjax.slam.front_end_pose_graph`, plain and robust chain: best of 3
-after a compiling call), and one call each of :func:`lidarjax.slam.optimize_joint` and
-:func:`lidarjax.slam.optimize_alternating` (``--steps`` L-BFGS iterations; seconds per
-iteration, after a compiling call). Front-end scans/s leave out the first two scans (the
-first match compiles; reported as ``first_scan_s``). The 1-minute load average is
-recorded before every timing. Writes ``benchmarks/results/slam.json``.
+baseline's front end, :func:`lidarjax.slam.find_revisits` (best of 3), the pose graph over
+the front end's increments and its loop closures
+(:func:`lidarjax.slam.front_end_pose_graph`: the plain chain, and the robust chain with the
+odometry and the revisits; best of 3 after a compiling call), and one call each of
+:func:`lidarjax.slam.optimize_joint` and :func:`lidarjax.slam.optimize_alternating`
+(``--steps`` L-BFGS iterations; seconds per iteration, after a compiling call). Front-end
+scans/s leave out the first two scans (the first match compiles; reported as
+``first_scan_s``). The 1-minute load average is recorded before every timing. Writes
+``benchmarks/results/slam.json``.
 
 Usage: ``python benchmarks/slam.py [--logs intel fhw orebro] [--scans 200] [--steps 20]``.
 """
@@ -77,14 +79,29 @@ def main() -> None:
             if model == "decay_rate":
                 start = fe.poses
         loops = slam.find_loops(ranges, az, start)
+        load = os.getloadavg()[0]
+        times = []
+        for _ in range(3):
+            t = time.perf_counter()
+            revisits = slam.find_revisits(ranges, az, start)
+            times.append(time.perf_counter() - t)
+        row["find_revisits"] = {
+            "load_1min_before": load,
+            "seconds_best_of_3": min(times),
+            "candidates": int(revisits.n_tried),
+            "revisits": int(len(revisits.edges)),
+        }
+        # the plain chain (no odometry, no revisits) and the default (robust chain with
+        # the odometry and the revisits)
         for robust in (False, True):
             cfg = slam.SlamConfig(robust_chain=robust)
-            slam.front_end_pose_graph(start, odo, loops, cfg).poses.block_until_ready()
+            rv = revisits if robust else None
+            slam.front_end_pose_graph(start, odo, loops, cfg, rv).poses.block_until_ready()
             load = os.getloadavg()[0]
             times = []
             for _ in range(3):
                 t = time.perf_counter()
-                pg = slam.front_end_pose_graph(start, odo, loops, cfg)
+                pg = slam.front_end_pose_graph(start, odo, loops, cfg, rv)
                 pg.poses.block_until_ready()
                 times.append(time.perf_counter() - t)
             row["pose_graph_robust_chain" if robust else "pose_graph_plain_chain"] = {
@@ -93,6 +110,7 @@ def main() -> None:
                 "iterations": int(pg.n_iters),
                 "poses": n,
                 "loops": int(len(loops.edges)),
+                "revisits": 0 if rv is None else int(len(rv.edges)),
             }
         load = os.getloadavg()[0]
         t = time.perf_counter()

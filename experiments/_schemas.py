@@ -1211,6 +1211,7 @@ class SlamLoops:
 @dataclass
 class SlamPoseGraph:
     robust_chain: bool = _f()
+    revisits: bool = _f()
 
 
 @dataclass

@@ -152,6 +152,7 @@ def main(cfg: DictConfig) -> None:
                     back=back,
                     back_end="none",
                     robust_chain=cfg.pose_graph.robust_chain,
+                    revisits=cfg.pose_graph.revisits,
                 ),
                 progress=True,
             )
@@ -160,6 +161,7 @@ def main(cfg: DictConfig) -> None:
                 "front_end_scans_per_s": fe_rate,
                 "front_end_rtf": None if rate is None else fe_rate / rate,
                 "n_loops": int(len(base.loops.edges)),
+                "n_revisits": int(len(base.revisits.edges)),
                 "seconds_front_end": base.seconds["front_end"],
                 "seconds_loops": base.seconds["loops"],
                 "seconds_pose_graph": base.seconds["pose_graph"],
@@ -193,12 +195,14 @@ def main(cfg: DictConfig) -> None:
                     back=back,
                     back_end="none",
                     robust_chain=cfg.pose_graph.robust_chain,
+                    revisits=cfg.pose_graph.revisits,
                 ),
                 progress=True,
             )
             est["endpoint"] = ep.poses
             info["endpoint"] = {
                 "n_loops": int(len(ep.loops.edges)),
+                "n_revisits": int(len(ep.revisits.edges)),
                 "front_end_scans_per_s": n / ep.seconds["front_end"],
                 "seconds": sum(ep.seconds.values()),
             }
@@ -221,16 +225,17 @@ def main(cfg: DictConfig) -> None:
             _figures(out, name, gt, gt_map, spec, est, traj)
     md = [
         f"| log | variant | ATE RMSE (m) | ATE mean (m) | RPE/{cfg.rpe_delta_m:g} m (m, deg) "
-        "| p_ref RMSE | loops | front end scans/s (RTF) |",
+        "| p_ref RMSE | loops (revisits) | front end scans/s (RTF) |",
         "|---|---|---:|---:|---:|---:|---:|---:|",
     ]
     for name, v, r in rows:
         rtf = r.get("front_end_rtf")
+        rv = f" ({r['n_revisits']})" if "n_revisits" in r else ""
         fe = r.get("front_end_scans_per_s")
         md.append(
             f"| {name} | {v} | {fmt(r['ate_rmse_m'])} | {fmt(r['ate_mean_m'])} | "
             f"{fmt(r['rpe_trans_rmse_m'])}, {fmt(r['rpe_rot_rmse_deg'], 2)} | "
-            f"{fmt(r['p_ref_rmse'])} | {r.get('n_loops', '–')} | "
+            f"{fmt(r['p_ref_rmse'])} | {r.get('n_loops', '–')}{rv} | "
             f"{fmt(fe, 2) if fe else '–'}{f' ({rtf:.1f})' if rtf else ''} |"
         )
     write_results(

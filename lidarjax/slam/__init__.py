@@ -18,6 +18,7 @@ from ._front_end import run_front_end as run_front_end
 from ._loops import LoopConfig as LoopConfig
 from ._loops import Loops as Loops
 from ._loops import find_loops as find_loops
+from ._loops import find_revisits as find_revisits
 from ._pipeline import SlamConfig as SlamConfig
 from ._pipeline import SlamResult as SlamResult
 from ._pipeline import front_end_pose_graph as front_end_pose_graph

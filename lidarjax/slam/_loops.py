@@ -21,6 +21,13 @@ right basin. The best match is accepted when
 * with several start poses, at least two end within ``agree_m`` of the best match.
 
 Accepted closures become relative-pose factors ``pose_j^-1 pose_i`` for the pose graph.
+
+:func:`find_revisits` pairs the same candidates without matching: a pair is kept when,
+at the given poses, the scan's end points lie on the submap's (the front end put both
+visits on the same walls), and its factor is the front end's own relative pose. The
+pose graph needs these where it down-weights the front end's increments (see
+:class:`~lidarjax.slam.SlamConfig`): a whole-map front end corrects its drift at a
+revisit in one increment, and without a factor across the loop that correction is lost.
 """
 
 from __future__ import annotations
@@ -32,7 +39,7 @@ import numpy as np
 
 from ._front_end import FrontEndConfig, GridMap, between_np, compose_np, match_scan
 
-__all__ = ["LoopConfig", "Loops", "find_loops"]
+__all__ = ["LoopConfig", "Loops", "find_loops", "find_revisits"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -137,6 +144,102 @@ def _starts(cfg: LoopConfig) -> np.ndarray:
     return np.array(s)
 
 
+def _candidates(poses: np.ndarray, i: int, cfg: LoopConfig) -> list[int]:
+    """Scan ``i``'s loop candidates: the nearest ``cfg.max_candidates`` earlier scans
+    ``j <= i - min_separation`` within ``radius_m``, pairwise ``min_separation`` apart."""
+    d = np.hypot(*(poses[: i - cfg.min_separation + 1, :2] - poses[i, :2]).T)
+    chosen: list[int] = []
+    for j in np.argsort(d):
+        if d[j] > cfg.radius_m or len(chosen) == cfg.max_candidates:
+            break
+        if all(abs(j - c) >= cfg.min_separation for c in chosen):
+            chosen.append(int(j))
+    return chosen
+
+
+def _check_scans(rng: np.ndarray, az: np.ndarray, poses: np.ndarray) -> None:
+    if rng.ndim != 2:
+        raise ValueError(f"ranges_m must be an [N, B] array, got shape {rng.shape}")
+    n = rng.shape[0]
+    if poses.shape != (n, 3) or not np.all(np.isfinite(poses)):
+        raise ValueError(f"poses must be a finite [{n}, 3] array, got {poses.shape}")
+    if az.shape != (rng.shape[1],) or not np.all(np.isfinite(az)):
+        raise ValueError(f"azimuths_rad must be a finite [{rng.shape[1]}] array, got {az.shape}")
+
+
+def find_revisits(
+    ranges_m: np.ndarray,
+    azimuths_rad: np.ndarray,
+    poses: np.ndarray,
+    cfg: LoopConfig | None = None,
+    *,
+    range_cap_m: float = 10.0,
+    cell_m: float = 0.1,
+    min_overlap: float = 0.5,
+) -> Loops:
+    """Pairs of scans an estimate puts on the same walls (module docstring).
+
+    The candidates are :func:`find_loops`'s (``cfg.radius_m``, ``min_separation``,
+    ``max_candidates``, ``every``). A pair ``(j, i)`` is kept when at least
+    ``min_overlap`` of scan ``i``'s end points (readings below ``range_cap_m``, placed
+    at ``poses[i]``) fall in a cell of side ``cell_m``, or one of its 8 neighbours, that
+    holds an end point of scans ``j - submap_half .. j + submap_half`` (at their poses).
+    Nothing is matched: the measurement is ``poses[j]^-1 poses[i]`` itself.
+
+    Args:
+        ranges_m: ``[N B]`` readings (m).
+        azimuths_rad: ``[B]`` beam angles (rad).
+        poses: ``[N 3]`` the estimate ``(x m, y m, yaw rad)`` (e.g. the front end's).
+        cfg: candidate settings (:class:`LoopConfig`).
+        range_cap_m: readings at or beyond are no-returns (m).
+        cell_m: cell side of the overlap test (m).
+        min_overlap: least fraction of scan ``i``'s end points on the submap's.
+
+    Returns:
+        :class:`Loops` (``n_tried``: candidate pairs tested).
+    """
+    cfg = LoopConfig() if cfg is None else cfg
+    for name, v in (("range_cap_m", range_cap_m), ("cell_m", cell_m)):
+        if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+            raise ValueError(f"{name} must be a positive finite number, got {v!r}")
+    if not (isinstance(min_overlap, (int, float)) and 0 < min_overlap <= 1):
+        raise ValueError(f"min_overlap must be in (0, 1], got {min_overlap!r}")
+    rng = np.asarray(ranges_m, float)
+    az = np.asarray(azimuths_rad, float)
+    poses = np.asarray(poses, float)
+    _check_scans(rng, az, poses)
+    if np.any(np.isnan(rng)) or np.any(rng < 0):
+        raise ValueError("ranges_m must be >= 0 and not NaN")
+    n = rng.shape[0]
+    hit = rng < range_cap_m
+    ang = poses[:, 2:3] + az
+    ex = poses[:, 0:1] + np.where(hit, rng, 0.0) * np.cos(ang)
+    ey = poses[:, 1:2] + np.where(hit, rng, 0.0) * np.sin(ang)
+    # end points in cells, as int64 keys ix * 2**22 + iy (1 <= ix, iy < 2**21)
+    ix = np.floor((ex - ex.min()) / cell_m).astype(np.int64) + 1
+    iy = np.floor((ey - ey.min()) / cell_m).astype(np.int64) + 1
+    if max(ix.max(), iy.max()) >= 2**21 - 1:
+        raise ValueError(
+            f"the end points span more than {(2**21 - 2) * cell_m:.0f} m; split the log or "
+            "raise cell_m"
+        )
+    key = ix * 2**22 + iy
+    around = np.array([dx * 2**22 + dy for dx in (-1, 0, 1) for dy in (-1, 0, 1)], np.int64)
+    edges = []
+    n_tried = 0
+    for i in range(cfg.min_separation, n, cfg.every):
+        if not hit[i].any():
+            continue
+        for j in _candidates(poses, i, cfg):
+            n_tried += 1
+            lo, hi = max(0, j - cfg.submap_half), min(n, j + cfg.submap_half + 1)
+            cells = np.unique((key[lo:hi][hit[lo:hi]][:, None] + around).ravel())
+            if np.isin(key[i][hit[i]], cells).mean() >= min_overlap:
+                edges.append((j, i))
+    e = np.asarray(edges, np.int64).reshape(-1, 2)
+    return Loops(e, between_np(poses[e[:, 0]], poses[e[:, 1]]).reshape(-1, 3), n_tried)
+
+
 def find_loops(
     ranges_m: np.ndarray,
     azimuths_rad: np.ndarray,
@@ -169,11 +272,8 @@ def find_loops(
     rng = np.asarray(ranges_m, float)
     az = np.asarray(azimuths_rad, float)
     poses = np.asarray(poses, float)
+    _check_scans(rng, az, poses)
     n = rng.shape[0]
-    if poses.shape != (n, 3) or not np.all(np.isfinite(poses)):
-        raise ValueError(f"poses must be a finite [{n}, 3] array, got {poses.shape}")
-    if az.shape != (rng.shape[1],):
-        raise ValueError(f"azimuths_rad must have shape [{rng.shape[1]}], got {az.shape}")
     starts = _starts(cfg)
     searched = cfg.search_xy_m > 0 or cfg.search_yaw_rad > 0
     edges, meas = [], []
@@ -184,15 +284,7 @@ def find_loops(
 
         it = tqdm(it, desc="loop closures", unit="scan")
     for i in it:
-        d = np.hypot(*(poses[: i - cfg.min_separation + 1, :2] - poses[i, :2]).T)
-        order = np.argsort(d)
-        chosen: list[int] = []
-        for j in order:
-            if d[j] > cfg.radius_m or len(chosen) == cfg.max_candidates:
-                break
-            if all(abs(j - c) >= cfg.min_separation for c in chosen):
-                chosen.append(int(j))
-        for j in chosen:
+        for j in _candidates(poses, i, cfg):
             n_tried += 1
             lo, hi = max(0, j - cfg.submap_half), min(n, j + cfg.submap_half + 1)
             # the submap in the frame of scan j

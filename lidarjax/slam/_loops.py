@@ -202,7 +202,9 @@ def find_revisits(
     for name, v in (("range_cap_m", range_cap_m), ("cell_m", cell_m)):
         if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
             raise ValueError(f"{name} must be a positive finite number, got {v!r}")
-    if not (isinstance(min_overlap, (int, float)) and 0 < min_overlap <= 1):
+    if isinstance(min_overlap, bool) or not (
+        isinstance(min_overlap, (int, float)) and 0 < min_overlap <= 1
+    ):
         raise ValueError(f"min_overlap must be in (0, 1], got {min_overlap!r}")
     rng = np.asarray(ranges_m, float)
     az = np.asarray(azimuths_rad, float)

@@ -434,13 +434,20 @@ def test_grid_map_window_pads_with_zeros():
 
 
 @pytest.fixture(scope="module")
-def office_revisit_loops():
-    """Loops found on 1.35 laps of the office (the last 35 scans revisit the start) along
-    the true poses under a smooth drift (about 0.4 m at the end)."""
+def office_revisit_scans():
+    """1.35 laps of the office (the last 35 scans revisit the start): poses, scans."""
     world = make_office(0)
     lap = world.trajectory(100, jitter_m=0.2)
     truth = np.vstack([lap, lap[:35]])
     ranges = simulate_scans(world, truth, AZ, max_range_m=MAX_RANGE, noise_sigma_m=0.01, seed=0)
+    return truth, ranges
+
+
+@pytest.fixture(scope="module")
+def office_revisit_loops(office_revisit_scans):
+    """Loops found on the revisit along the true poses under a smooth drift (about 0.4 m
+    at the end)."""
+    truth, ranges = office_revisit_scans
     n = truth.shape[0]
     s = np.arange(n) / (n - 1)
     est = truth.copy()
@@ -477,16 +484,6 @@ def test_find_loops_every_accepted_loop_is_accurate(office_revisit_loops):
     truth, loops = office_revisit_loops
     xy, yaw = _loop_errors(truth, loops)
     assert xy.max() < 0.1 and yaw.max() < 0.02
-
-
-@pytest.fixture(scope="module")
-def office_revisit_scans():
-    """1.35 laps of the office (the last 35 scans revisit the start): poses, scans."""
-    world = make_office(0)
-    lap = world.trajectory(100, jitter_m=0.2)
-    truth = np.vstack([lap, lap[:35]])
-    ranges = simulate_scans(world, truth, AZ, max_range_m=MAX_RANGE, noise_sigma_m=0.01, seed=0)
-    return truth, ranges
 
 
 def _overlap_by_distance(ranges, poses, j, i, half, dist):
@@ -546,15 +543,8 @@ def test_find_revisits_pairs_scans_on_the_same_walls(office_revisit_scans, shift
 
 
 def test_find_revisits_rejects_bad_inputs():
+    # the array checks it shares with find_loops: test_loop_searches_reject_bad_arrays
     r, a, o = _front_inputs()
-    with pytest.raises(ValueError, match="poses"):
-        find_revisits(r, a, o[:-1])
-    with pytest.raises(ValueError, match="poses"):
-        find_revisits(r, a, o + np.nan)
-    with pytest.raises(ValueError, match="azimuths_rad"):
-        find_revisits(r, a[:-1], o)
-    with pytest.raises(ValueError, match="ranges_m"):
-        find_revisits(r[0], a, o)
     with pytest.raises(ValueError, match="ranges_m"):
         find_revisits(np.where(np.arange(r.shape[1]) == 0, -1.0, r), a, o)
     with pytest.raises(ValueError, match="ranges_m"):
@@ -612,11 +602,8 @@ def test_back_end_does_not_lose_objective(back_end_problem, optimize):
 
 
 @pytest.mark.slow  # a 135-scan run: front end, loops, pose graph and joint back end
-def test_run_slam_end_to_end():
-    world = make_office(0)
-    lap = world.trajectory(100, jitter_m=0.2)
-    truth = np.vstack([lap, lap[:35]])
-    ranges = simulate_scans(world, truth, AZ, max_range_m=MAX_RANGE, noise_sigma_m=0.01, seed=0)
+def test_run_slam_end_to_end(office_revisit_scans):
+    truth, ranges = office_revisit_scans
     odo = wheel_odometry(truth, seed=0, **DRIFT)
     cfg = SlamConfig(loops=LoopConfig(every=5), back=BackEndConfig(max_steps=10, n_nodes=64))
     r = run_slam(ranges, AZ, odo, cfg)
@@ -769,14 +756,17 @@ def test_loop_config_rejects_bad_values(kwargs, name):
         LoopConfig(**kwargs)
 
 
-def test_find_loops_rejects_bad_arrays():
+@pytest.mark.parametrize("search", [find_loops, find_revisits])
+def test_loop_searches_reject_bad_arrays(search):
     r, a, o = _front_inputs()
     with pytest.raises(ValueError, match="poses"):
-        find_loops(r, a, o[:-1])
+        search(r, a, o[:-1])
     with pytest.raises(ValueError, match="poses"):
-        find_loops(r, a, o + np.nan)
+        search(r, a, o + np.nan)
     with pytest.raises(ValueError, match="azimuths_rad"):
-        find_loops(r, a[:-1], o)
+        search(r, a[:-1], o)
+    with pytest.raises(ValueError, match="ranges_m"):
+        search(r[0], a, o)
 
 
 @pytest.mark.parametrize(

@@ -4,7 +4,10 @@ end's seconds per iteration, with the classical baseline timed in the same run.
 On the first ``--scans`` scans of each log with the experiment's drifting odometry
 (``configs/slam.yaml``): the decay-rate front end (:func:`lidarjax.slam.run_front_end`;
 scans/s after its first scan, which compiles), the endpoint front end, the GICP + GTSAM
-baseline's front end, :func:`lidarjax.slam.find_revisits` (best of 3), the pose graph over
+baseline's front end, :func:`lidarjax.slam.find_revisits` (best of 3), the reference-free
+consistency scores :func:`lidarjax.metrics.cross_visit_distance` and
+:func:`lidarjax.slam.trajectory_log_likelihood` of the front end's trajectory (best of 3),
+the pose graph over
 the front end's increments and its loop closures
 (:func:`lidarjax.slam.front_end_pose_graph`: the plain chain, and the robust chain with the
 odometry and the revisits; best of 3 after a compiling call), and one call each of
@@ -28,6 +31,7 @@ from _harness import RESULTS, machine_info, write_json
 
 from lidarjax import slam
 from lidarjax.datasets import fetch, load_carmen
+from lidarjax.metrics import cross_visit_distance
 from lidarjax.sim import wheel_odometry
 from lidarjax.slam._front_end import between_np
 
@@ -91,6 +95,23 @@ def main() -> None:
             "candidates": int(revisits.n_tried),
             "revisits": int(len(revisits.edges)),
         }
+        # the reference-free consistency scores of the front end's trajectory (best of 3;
+        # the log-likelihood after a compiling call)
+        slam.trajectory_log_likelihood(start, az, ranges)
+        for key, fn in (
+            ("cross_visit_distance", lambda: cross_visit_distance(start, ranges, az)),
+            (
+                "trajectory_log_likelihood",
+                lambda: slam.trajectory_log_likelihood(start, az, ranges),
+            ),
+        ):
+            load = os.getloadavg()[0]
+            times = []
+            for _ in range(3):
+                t = time.perf_counter()
+                fn()
+                times.append(time.perf_counter() - t)
+            row[key] = {"load_1min_before": load, "seconds_best_of_3": min(times)}
         # the plain chain (no odometry, no revisits) and the default (robust chain with
         # the odometry and the revisits)
         for robust in (False, True):

@@ -1183,6 +1183,7 @@ SLAM_VARIANTS = (
     "endpoint",
     "icp_gtsam",
     "odometry",
+    "reference_back_end",
 )
 
 

@@ -541,6 +541,8 @@ def test_slam_small(tmp_path):
         "back_end.max_steps=3",
         "back_end.rounds=1",
         "loops.min_separation=20",
+        "variants=[decay_rate_joint,decay_rate_alternating,decay_rate_pose_graph,endpoint,"
+        "icp_gtsam,reference_back_end]",
     )
     per = res["logs"]["orebro"]["variants"]
     assert set(per) == {
@@ -550,9 +552,17 @@ def test_slam_small(tmp_path):
         "decay_rate_pose_graph",
         "endpoint",
         "icp_gtsam",
+        "reference_back_end",
     }
     for v in per.values():
         assert np.isfinite(v["ate_rmse_m"]) and np.isfinite(v["p_ref_rmse"])
+        assert np.isfinite(v["log_likelihood_per_ray"]) and 0 <= v["cross_visit_fraction"] <= 1
+    # the consistency scores of the reference itself; the back end from it stays close and
+    # raises its log-likelihood
+    ref = res["logs"]["orebro"]["reference_consistency"]
+    assert ref["log_likelihood_per_ray"] > per["odometry"]["log_likelihood_per_ray"]
+    assert per["reference_back_end"]["ate_rmse_m"] < 0.05
+    assert per["reference_back_end"]["log_likelihood_per_ray"] > ref["log_likelihood_per_ray"]
     assert per["icp_gtsam"]["ate_rmse_m"] < per["odometry"]["ate_rmse_m"]
     assert per["decay_rate_joint"]["front_end_scans_per_s"] > 0
     assert per["decay_rate_joint"]["seconds_back_end"] > 0

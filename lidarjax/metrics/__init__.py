@@ -1,8 +1,11 @@
 """Evaluation measures from the dissertation: map RMSE in p_ref (section 9.5.1), the
 pose-likelihood divergences of Eqs. (7.28), (7.29), (8.24)/(8.25), the polyline metrics of
 section 10.5, the plane-segmentation metrics of chapter 11 (Hoover scores, k, RMSE) and
-the trajectory errors of Table 12.2."""
+the trajectory errors of Table 12.2, and a reference-free map consistency of a
+trajectory (cross-visit end-point distances)."""
 
+from ._consistency import CrossVisitDistance as CrossVisitDistance
+from ._consistency import cross_visit_distance as cross_visit_distance
 from ._maps import dirac_divergence as dirac_divergence
 from ._maps import gaussian_log_density as gaussian_log_density
 from ._maps import inverse_kl as inverse_kl
@@ -53,4 +56,6 @@ __all__ = [
     "RelativePoseError",
     "align_se2",
     "interpolate_at_arclength",
+    "CrossVisitDistance",
+    "cross_visit_distance",
 ]

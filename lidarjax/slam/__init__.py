@@ -7,6 +7,7 @@ from ._back_end import BackEndResult as BackEndResult
 from ._back_end import joint_objective as joint_objective
 from ._back_end import optimize_alternating as optimize_alternating
 from ._back_end import optimize_joint as optimize_joint
+from ._back_end import trajectory_log_likelihood as trajectory_log_likelihood
 from ._baselines import IcpSlamResult as IcpSlamResult
 from ._baselines import icp_pose_graph_slam as icp_pose_graph_slam
 from ._front_end import FrontEndConfig as FrontEndConfig

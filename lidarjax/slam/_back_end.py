@@ -45,6 +45,7 @@ __all__ = [
     "joint_objective",
     "optimize_alternating",
     "optimize_joint",
+    "trajectory_log_likelihood",
 ]
 
 
@@ -217,6 +218,40 @@ def _setup(poses0, azimuths, ranges, edges, measurements, sigmas, cfg):
     n = p0.shape[0]
     free = jnp.ones((n, 1), dt).at[0].set(0.0)
     return arrays, _grid_spec(p0, cfg), free, float(n * az.shape[0])
+
+
+def trajectory_log_likelihood(
+    poses: np.ndarray,
+    azimuths: np.ndarray,
+    ranges: np.ndarray,
+    cfg: BackEndConfig | None = None,
+) -> float:
+    """Self-consistency of a trajectory: the data term of ``J`` (module docstring) per ray
+    (nats), the scans at ``poses`` scored on the closed-form ML grid of the same scans at
+    the same poses (Eq. 7.10 with the pseudo-counts, then the continuous field).
+
+    The better the scans of all visits agree at ``poses``, the higher it is; it needs no
+    reference trajectory, so it also scores a reference (e.g. a log's corrected poses) on
+    the same footing as an estimate. Comparable between trajectories of the same scans and
+    settings only.
+
+    Args:
+        poses: ``[N 3]`` poses ``(x m, y m, yaw rad)``.
+        azimuths: ``[B]`` beam angles (rad).
+        ranges: ``[N B]`` readings (m).
+        cfg: settings (field resolution, range cap, floors, pseudo-counts).
+
+    Returns:
+        Mean log-likelihood per ray (nats), each ray floored at ``cfg.ray_floor``.
+    """
+    cfg = BackEndConfig() if cfg is None else cfg
+    p = np.asarray(poses, float)
+    if p.ndim != 2 or p.shape[1] != 3 or p.shape[0] == 0 or not np.all(np.isfinite(p)):
+        raise ValueError(f"poses must be a finite [N, 3] array, got shape {p.shape}")
+    (p0, az, rg, e, m, s), spec, _, scale = _setup(p, azimuths, ranges, None, None, None, cfg)
+    theta = _ml_params(spec, p0, az, rg, cfg)
+    j = joint_objective(jnp.zeros_like(p0), theta, p0, az, rg, e, m, s, spec, cfg)
+    return float(j) / scale
 
 
 def optimize_joint(

@@ -58,6 +58,20 @@ def test_cross_visit_distance_matches_brute_force(sep, cap, chunk):
         assert sep >= n and np.isnan(r.mean_m) and r.fraction == 0
 
 
+def test_cross_visit_distance_counts_distances_of_exactly_the_cap():
+    # two scans of one beam, end points 0.25 m apart (exact in binary)
+    poses = np.array([[0.0, 0.0, 0.0], [0.0, 0.25, 0.0]])
+    r = cross_visit_distance(poses, np.ones((2, 1)), np.zeros(1), min_separation=1, cap_m=0.25)
+    np.testing.assert_array_equal(r.distances_m, [[0.25], [0.25]])
+    r = cross_visit_distance(poses, np.ones((2, 1)), np.zeros(1), min_separation=1, cap_m=0.2)
+    assert np.isnan(r.distances_m).all() and r.fraction == 0 and np.isnan(r.mean_m)
+    # numpy scalars are numbers too
+    r = cross_visit_distance(
+        poses, np.ones((2, 1)), np.zeros(1), min_separation=np.int64(1), cap_m=np.float32(0.5)
+    )
+    assert r.fraction == 1
+
+
 def test_cross_visit_distance_ranks_a_misclosed_loop_below_the_truth():
     world = make_office(0)
     lap = world.trajectory(60, jitter_m=0.2)

@@ -16,6 +16,7 @@ NumPy and a k-d tree (SciPy); evaluation code, not a hot path.
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass
 
 import numpy as np
@@ -32,8 +33,11 @@ class CrossVisitDistance:
         distances_m: ``[N B]`` each reading's cross-visit distance (m); NaN where the
             reading is no end point or has no cross-visit neighbour within ``cap_m``.
         mean_m, median_m, p90_m: mean, median and 90th percentile of the finite
-            distances (m); NaN when there are none.
-        fraction: share of the end points with a cross-visit neighbour within ``cap_m``.
+            distances (m), i.e. over the end points with a neighbour within ``cap_m``
+            only (read them with ``fraction``: a misplaced visit also pushes points out
+            of the cap); NaN when there are none.
+        fraction: share of the end points with a cross-visit neighbour within ``cap_m``
+            (NaN without end points).
         n_points: end points.
     """
 
@@ -46,7 +50,7 @@ class CrossVisitDistance:
 
 
 def _positive(name: str, v) -> float:
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v > 0):
+    if isinstance(v, bool) or not isinstance(v, numbers.Real) or not (math.isfinite(v) and v > 0):
         raise ValueError(f"{name} must be a positive finite number, got {v!r}")
     return float(v)
 
@@ -68,10 +72,14 @@ def cross_visit_distance(
         ranges_m: ``[N B]`` readings (m), finite and >= 0; readings at or beyond
             ``max_range_m`` and zeros are no end points.
         azimuths_rad: ``[B]`` beam angles in the sensor frame (rad).
-        min_separation: least index distance of two scans counted as different visits.
+        min_separation: least index distance of two scans counted as different visits
+            (the loop search's default; scans of the shared CARMEN logs are 0.55-0.95 m
+            apart on average, so 30 scans is some 15-30 m of path: raise it for denser
+            logs).
         max_range_m: readings at or beyond are not used (m).
         cap_m: largest counted distance (m).
-        chunk_size: end points per nearest-neighbour query (memory bound).
+        chunk_size: neighbour entries (end points times neighbours) per k-d tree query
+            (memory bound).
 
     Returns:
         :class:`CrossVisitDistance`.
@@ -109,6 +117,7 @@ def cross_visit_distance(
     m = xy.shape[0]
     best = np.full(m, np.inf)
     if m > 1:
+        bound = float(np.nextafter(cap_m, np.inf))
         tree = cKDTree(xy)
         todo = np.arange(m)
         k = min(16, m)
@@ -118,7 +127,8 @@ def cross_visit_distance(
             still = []
             for s in range(0, todo.size, max(1, chunk_size // k)):
                 q = todo[s : s + max(1, chunk_size // k)]
-                d, idx = tree.query(xy[q], k=k, distance_upper_bound=cap_m)
+                # the bound is strict: nextafter keeps distances of exactly cap_m
+                d, idx = tree.query(xy[q], k=k, distance_upper_bound=bound)
                 d, idx = d.reshape(q.size, k), idx.reshape(q.size, k)
                 other = np.isfinite(d)
                 other[other] = np.abs(scan[idx[other]] - np.repeat(scan[q], k)[other.ravel()]) >= (

@@ -557,12 +557,16 @@ def test_slam_small(tmp_path):
     for v in per.values():
         assert np.isfinite(v["ate_rmse_m"]) and np.isfinite(v["p_ref_rmse"])
         assert np.isfinite(v["log_likelihood_per_ray"]) and 0 <= v["cross_visit_fraction"] <= 1
-    # the consistency scores of the reference itself; the back end from it stays close and
-    # raises its log-likelihood
+    # the consistency scores of the reference itself (measured: 1.376 against the
+    # odometry's 0.881 nats per ray; on 40 scans no scan has another visit 20 scans away,
+    # so no cross-visit distance); the back end from it stays there in 3 iterations
+    # (measured: 4e-7 m, the same log-likelihood to 1e-7)
     ref = res["logs"]["orebro"]["reference_consistency"]
-    assert ref["log_likelihood_per_ray"] > per["odometry"]["log_likelihood_per_ray"]
-    assert per["reference_back_end"]["ate_rmse_m"] < 0.05
-    assert per["reference_back_end"]["log_likelihood_per_ray"] > ref["log_likelihood_per_ray"]
+    assert ref["log_likelihood_per_ray"] > per["odometry"]["log_likelihood_per_ray"] + 0.3
+    assert ref["cross_visit_fraction"] == 0 and np.isnan(ref["cross_visit_mean_m"])
+    back = per["reference_back_end"]
+    assert back["ate_rmse_m"] < 0.01
+    assert abs(back["log_likelihood_per_ray"] - ref["log_likelihood_per_ray"]) < 0.01
     assert per["icp_gtsam"]["ate_rmse_m"] < per["odometry"]["ate_rmse_m"]
     assert per["decay_rate_joint"]["front_end_scans_per_s"] > 0
     assert per["decay_rate_joint"]["seconds_back_end"] > 0

@@ -125,8 +125,9 @@ def cross_visit_distance(
         # at most log2(m / 16) + 1 rounds, ending at k = m (every point seen).
         while todo.size:
             still = []
-            for s in range(0, todo.size, max(1, chunk_size // k)):
-                q = todo[s : s + max(1, chunk_size // k)]
+            step = max(1, chunk_size // k)
+            for s in range(0, todo.size, step):
+                q = todo[s : s + step]
                 # the bound is strict: nextafter keeps distances of exactly cap_m
                 d, idx = tree.query(xy[q], k=k, distance_upper_bound=bound)
                 d, idx = d.reshape(q.size, k), idx.reshape(q.size, k)

@@ -173,12 +173,12 @@ def joint_objective(
     return data - 0.5 * jnp.sum(err**2)
 
 
-def _check(poses0, azimuths, ranges, edges, measurements, sigmas):
+def _check(poses0, azimuths, ranges, edges, measurements, sigmas, pose_name="poses0"):
     p = np.asarray(poses0, float)
     az = np.asarray(azimuths, float)
     rg = np.asarray(ranges, float)
     if p.ndim != 2 or p.shape[1] != 3 or p.shape[0] == 0 or not np.all(np.isfinite(p)):
-        raise ValueError(f"poses0 must be a finite [N, 3] array, got shape {p.shape}")
+        raise ValueError(f"{pose_name} must be a finite [N, 3] array, got shape {p.shape}")
     if az.ndim != 1 or not np.all(np.isfinite(az)):
         raise ValueError("azimuths must be a finite [B] array")
     if rg.shape != (p.shape[0], az.shape[0]) or not np.all(np.isfinite(rg)) or np.any(rg < 0):
@@ -263,10 +263,7 @@ def trajectory_log_likelihood(
         raise ValueError(f"grid_shifts must be a positive int, got {grid_shifts!r}")
     if grid_shifts <= 0:
         raise ValueError(f"grid_shifts must be a positive int, got {grid_shifts!r}")
-    p = np.asarray(poses, float)
-    if p.ndim != 2 or p.shape[1] != 3 or p.shape[0] == 0 or not np.all(np.isfinite(p)):
-        raise ValueError(f"poses must be a finite [N, 3] array, got shape {p.shape}")
-    p, _, rg_np, *_ = _check(p, azimuths, ranges, None, None, None)
+    p, az_np, rg_np, e, m, s = _check(poses, azimuths, ranges, None, None, None, "poses")
     k = np.arange(grid_shifts)
     # no motion is the identity: a trajectory whose walls happen to lie along the axes
     # gains nothing
@@ -279,23 +276,16 @@ def trajectory_log_likelihood(
         rot = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
         moved.append(np.c_[(p[:, :2] - c) @ rot.T + c + o, p[:, 2] + a])
     # one grid covering every motion: one compiled program
-    (_, az, rg, e, m, s), spec, _, scale = _setup(
-        np.concatenate(moved),
-        azimuths,
-        np.tile(rg_np, (grid_shifts, 1)),
-        None,
-        None,
-        None,
-        cfg,
-    )
+    spec = _grid_spec(np.concatenate(moved), cfg)
+    dt = jnp.result_type(float)
+    az, rg = jnp.asarray(az_np, dt), jnp.asarray(rg_np, dt)
+    e, m, s = jnp.asarray(e), jnp.asarray(m, dt), jnp.asarray(s, dt)
     total = 0.0
     for q in moved:
-        qj = jnp.asarray(q, az.dtype)
-        rgj = rg[: q.shape[0]]
-        theta = _ml_params(spec, qj, az, rgj, cfg)
-        j = joint_objective(jnp.zeros_like(qj), theta, qj, az, rgj, e, m, s, spec, cfg)
-        total += float(j)
-    return total / scale
+        qj = jnp.asarray(q, dt)
+        theta = _ml_params(spec, qj, az, rg, cfg)
+        total += float(joint_objective(jnp.zeros_like(qj), theta, qj, az, rg, e, m, s, spec, cfg))
+    return total / (grid_shifts * rg_np.size)
 
 
 def optimize_joint(

@@ -454,33 +454,13 @@ def _match_impl(rates, seen, origin, az, rng, pose0, pred, sigmas, cfg: FrontEnd
         pose, _ = refine_pose(objective, pose, max_steps=cfg.max_steps)
     # ... and the last stage alone from pose0: a blurred stage, or the search's end-point
     # score (no free-space term), can lead into a wrong basin (a corridor's repeating
-    # doors); the best final objective wins
+    # doors); the better final objective wins
     direct, _ = refine_pose(final, pose0, max_steps=cfg.max_steps)
-    searched = n_xy > 0 or n_yaw > 0
-    if searched and len(stages) > 1:
-        # a blurred stage that carries the search's best farther than the search's half
-        # widths has left the basin the search vouched for (a corridor's blurred walls
-        # favour a place half a metre or more along it: orebro's 2 m steps); then the
-        # last stage alone from the search's best replaces the staged pose. Within them
-        # the staged pose stays: among nearby optima of the last stage, the one the blur
-        # leads to is the broad one (picking the higher of the two doubled the front-end
-        # ATE of the simulated office with perfect odometry)
-        moved = pose.translation() - start.translation()
-        turned = (pose.rotation().inverse() @ start.rotation()).as_radians()
-        left = (jnp.max(jnp.abs(moved)) > cfg.search_xy_m) | (jnp.abs(turned) > cfg.search_yaw_rad)
-        staged = pose
-        pose = jaxlie.SE2(
-            jax.lax.cond(
-                left,
-                lambda: refine_pose(final, start, max_steps=cfg.max_steps)[0].parameters(),
-                lambda: staged.parameters(),
-            )
-        )
 
     # the gate: gate_sigmas, or ambiguous_gate_sigmas where the search found a second,
     # nearly as good pose (margin below ambiguous_margin nats: a corridor, repeating doors)
     gate = cfg.gate_sigmas
-    if searched:
+    if n_xy > 0 or n_yaw > 0:
         tight = min(cfg.ambiguous_gate_sigmas, cfg.gate_sigmas)
         gate = jnp.where(s_best - s_runner < cfg.ambiguous_margin, tight, gate)
 
@@ -489,15 +469,13 @@ def _match_impl(rates, seen, origin, az, rng, pose0, pred, sigmas, cfg: FrontEnd
         # corridor or snapped onto an aliased structure
         return jnp.sum(whitened(p) ** 2) <= gate**2
 
-    cands = (pose, direct)  # ties go to the first
-    fs = jnp.stack([final(c) for c in cands])
-    ok_c = jnp.stack([plausible(c) for c in cands]) & jnp.isfinite(fs)
-    scores = jnp.where(ok_c, fs, -jnp.inf)
-    pick = jnp.stack([c.parameters() for c in cands])[jnp.argmax(scores)]
-    ok = jnp.isfinite(jnp.max(scores))
+    f_staged = jnp.where(plausible(pose), final(pose), -jnp.inf)
+    f_direct = jnp.where(plausible(direct), final(direct), -jnp.inf)
+    pick = jnp.where(f_direct > f_staged, direct.parameters(), pose.parameters())
+    ok = jnp.isfinite(jnp.maximum(f_staged, f_direct))
 
     def stiff_fallback():
-        # none is plausible: the last stage from the prediction under a prior
+        # neither is plausible: the last stage from the prediction under a prior
         # ``gate_stiffness`` times tighter (the constrained directions still follow the
         # scan); if even that leaves the gate, the prediction itself
         _, stiff = stage_objective(cfg.blur_schedule_m[-1], cfg.gate_stiffness)
@@ -559,16 +537,6 @@ def match_scan(
 ) -> MatchResult:
     """Match one scan against the map window around ``pose0_xy_yaw``: coarse-to-fine
     maximisation of its decay-rate log-likelihood plus the Gaussian prior.
-
-    Two candidates are refined: the blur stages in turn from the search's best pose (or
-    the start pose without a search), and the last stage alone from the start pose; of
-    those within the gate, the one with the higher last-stage objective (data term plus
-    prior) wins. Where the blur stages carry the search's best farther than the search's
-    half widths (``search_xy_m``, ``search_yaw_rad``), they have left the basin the search
-    vouched for, and the last stage alone from the search's best takes their place (a
-    corridor's blurred walls favour a place half a metre or more along it). On orebro's
-    front end (2 m steps; drift seeds 0 / 1, AVX-512 machine) that took the pose-graph
-    ATE from 1.90 / 1.31 to 0.24 / 0.44 m.
 
     Args:
         grid: the map statistics.

@@ -56,6 +56,7 @@ import numpy as np
 import optimistix as optx
 
 import lidarjax
+from lidarjax._runtime import cpu_info
 
 ROOT = Path(__file__).resolve().parents[1]
 """The repository root."""
@@ -291,24 +292,18 @@ def machine_info(**extra) -> dict:
             of the same name.
 
     Returns:
-        ``cpu_count``, ``cpu_model``, ``platform``, ``python``, the versions of ``jax``,
+        ``cpu_count``, ``cpu_model``, ``cpu_vector_isa`` (``lidarjax._runtime.cpu_info``),
+        ``platform``, ``python``, the versions of ``jax``,
         ``numpy``, ``equinox``, ``optimistix`` and ``lidarjax``, ``jax_backend``, ``dtype``
         (JAX's default float), ``xla_flags`` (the ``XLA_FLAGS`` environment variable),
         ``load_average_start`` (``os.getloadavg()``), ``load_snapshot``
         (:func:`load_snapshot`) and ``noise_note``.
     """
-    cpu_model = platform.processor() or platform.machine()
-    try:
-        with open("/proc/cpuinfo") as f:
-            cpu_model = next(
-                (ln.split(":", 1)[1].strip() for ln in f if ln.startswith("model name")),
-                cpu_model,
-            )
-    except OSError:
-        pass
+    cpu = cpu_info()
     info = {
         "cpu_count": os.cpu_count(),
-        "cpu_model": cpu_model,
+        "cpu_model": cpu["cpu_model"] or platform.processor() or platform.machine(),
+        "cpu_vector_isa": cpu["cpu_vector_isa"],
         "platform": platform.platform(),
         "python": platform.python_version(),
         "jax": jax.__version__,

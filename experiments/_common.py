@@ -35,6 +35,7 @@ from omegaconf import DictConfig, OmegaConf
 
 import lidarjax
 from lidarjax import maps
+from lidarjax._runtime import cpu_info
 from lidarjax.distributed import HOST_DEVICES_ENV, host_devices_from_env, use_host_devices
 from lidarjax.rays import HIT, RayBatch, from_scan
 from lidarjax.raytrace import GridSpec, GridStats, accumulate
@@ -105,36 +106,6 @@ def output_dir() -> Path:
     return out
 
 
-def cpu_info(cpuinfo: str | Path = "/proc/cpuinfo") -> dict:
-    """``{"cpu_model": str | None, "cpu_vector_isa": "avx512" | "avx2" | "avx" | "sse4_2" |
-    None}`` from ``cpuinfo`` (Linux; both None where it is missing or says nothing). XLA
-    compiles float32 code for the CPU it runs on, so the SLAM front end's trajectories
-    differ between machines (see docs/results/slam.md); results name theirs."""
-    try:
-        text = Path(cpuinfo).read_text()
-    except OSError:
-        return {"cpu_model": None, "cpu_vector_isa": None}
-    model = flags = None
-    for line in text.splitlines():
-        key, _, value = line.partition(":")
-        key = key.strip()
-        if key == "model name" and model is None:
-            model = value.strip() or None
-        elif key == "flags" and flags is None:
-            flags = set(value.split())
-    isa = None
-    for name, flag in (
-        ("avx512", "avx512f"),
-        ("avx2", "avx2"),
-        ("avx", "avx"),
-        ("sse4_2", "sse4_2"),
-    ):
-        if flags is not None and flag in flags:
-            isa = name
-            break
-    return {"cpu_model": model, "cpu_vector_isa": isa}
-
-
 def run_info() -> dict:
     """Provenance written beside every result: versions, dtype, machine and its load."""
     return {
@@ -142,7 +113,7 @@ def run_info() -> dict:
         "jax_version": jax.__version__,
         "dtype": str(jnp.result_type(float)),
         "cpu_count": os.cpu_count(),
-        **cpu_info(),
+        **cpu_info(),  # the SLAM front end's trajectories depend on the CPU
         "load_average_1min": os.getloadavg()[0] if hasattr(os, "getloadavg") else None,
     }
 

@@ -74,6 +74,31 @@ def pin_to_one_core(core: int | None = None) -> int:
     return core
 
 
+_VECTOR_ISAS = (("avx512", "avx512f"), ("avx2", "avx2"), ("avx", "avx"), ("sse4_2", "sse4_2"))
+
+
+def cpu_info(cpuinfo: str | Path = "/proc/cpuinfo") -> dict:
+    """``{"cpu_model": str | None, "cpu_vector_isa": "avx512" | "avx2" | "avx" | "sse4_2" |
+    None}``: the first model name in ``cpuinfo`` and the widest of these among the first
+    processor's flags (Linux; None where the file is missing or says nothing). XLA
+    compiles float32 code for the CPU it runs on, so results that depend on rounding (the
+    SLAM front end's trajectories, docs/results/slam.md) name it."""
+    try:
+        text = Path(cpuinfo).read_text()
+    except OSError:
+        return {"cpu_model": None, "cpu_vector_isa": None}
+    model = flags = None
+    for line in text.splitlines():
+        key, _, value = line.partition(":")
+        key = key.strip()
+        if key == "model name" and model is None:
+            model = value.strip() or None
+        elif key == "flags" and flags is None:
+            flags = set(value.split())
+    isa = next((name for name, flag in _VECTOR_ISAS if flag in (flags or ())), None)
+    return {"cpu_model": model, "cpu_vector_isa": isa}
+
+
 def default_compilation_cache_dir() -> Path | None:
     """The folder :func:`enable_compilation_cache` uses when given no path.
 

@@ -196,6 +196,7 @@ def test_machine_info(h):
     assert set(m) >= {
         "cpu_count",
         "cpu_model",
+        "cpu_vector_isa",
         "platform",
         "python",
         "jax",

@@ -578,24 +578,3 @@ def test_slam_small(tmp_path):
         "results.md",
     ):
         assert (tmp_path / name).is_file(), name
-
-
-def test_cpu_info_reads_model_and_widest_vector_isa(tmp_path):
-    """The CPU a result was measured on (its float32 code, and so the SLAM front end's
-    trajectory, depends on it): the first model name and the widest of AVX-512 / AVX2 /
-    AVX / SSE4.2 among the first processor's flags; None for what is missing."""
-    if str(ROOT / "experiments") not in sys.path:
-        sys.path.insert(0, str(ROOT / "experiments"))
-    from _common import cpu_info
-
-    f = tmp_path / "cpuinfo"
-    f.write_text(
-        "processor\t: 0\nmodel name\t: Test CPU @ 2 GHz\nflags\t\t: fpu sse4_2 avx avx2\n\n"
-        "processor\t: 1\nmodel name\t: Other\nflags\t\t: fpu avx512f\n"
-    )
-    assert cpu_info(f) == {"cpu_model": "Test CPU @ 2 GHz", "cpu_vector_isa": "avx2"}
-    f.write_text("processor\t: 0\nflags\t\t: fpu avx512f avx2\n")
-    assert cpu_info(f) == {"cpu_model": None, "cpu_vector_isa": "avx512"}
-    f.write_text("processor\t: 0\nflags\t\t: fpu\n")
-    assert cpu_info(f) == {"cpu_model": None, "cpu_vector_isa": None}
-    assert cpu_info(tmp_path / "missing") == {"cpu_model": None, "cpu_vector_isa": None}

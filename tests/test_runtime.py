@@ -42,3 +42,24 @@ def test_pin_to_one_core_refuses_after_jax_started_and_bad_cores():
     code = "import lidarjax\nlidarjax.pin_to_one_core(10**6)\n"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert out.returncode != 0 and "core must be one of the allowed cores" in out.stderr
+
+
+def test_cpu_info_reads_model_and_widest_vector_isa(tmp_path):
+    """The CPU a result was measured on (its float32 code, and so the SLAM front end's
+    trajectory, depends on it): the first model name and the widest of AVX-512 / AVX2 /
+    AVX / SSE4.2 among the first processor's flags; None for what is missing."""
+    from lidarjax._runtime import cpu_info
+
+    f = tmp_path / "cpuinfo"
+    f.write_text(
+        "processor\t: 0\nmodel name\t: Test CPU @ 2 GHz\nflags\t\t: fpu sse4_2 avx avx2\n\n"
+        "processor\t: 1\nmodel name\t: Other\nflags\t\t: fpu avx512f\n"
+    )
+    assert cpu_info(f) == {"cpu_model": "Test CPU @ 2 GHz", "cpu_vector_isa": "avx2"}
+    f.write_text("processor\t: 0\nflags\t\t: fpu avx512f avx2\n")
+    assert cpu_info(f) == {"cpu_model": None, "cpu_vector_isa": "avx512"}
+    f.write_text("processor\t: 0\nflags\t\t: fpu\n")
+    assert cpu_info(f) == {"cpu_model": None, "cpu_vector_isa": None}
+    assert cpu_info(tmp_path / "missing") == {"cpu_model": None, "cpu_vector_isa": None}
+    # experiments' run_info and the benchmarks' machine_info record it
+    assert set(cpu_info()) == {"cpu_model", "cpu_vector_isa"}

@@ -634,6 +634,8 @@ def test_run_slam_end_to_end(office_revisit_scans):
         ({"window_m": 5.0, "range_cap_m": 10.0}, "window_m"),
         ({"blur_schedule_m": ()}, "blur_schedule_m"),
         ({"blur_schedule_m": (0.3, -0.1)}, "blur_schedule_m"),
+        ({"blur_schedule_m": 0.3}, "blur_schedule_m"),
+        ({"blur_schedule_m": ("wide",)}, "blur_schedule_m"),
         ({"n_nodes": 0}, "n_nodes"),
         ({"max_steps": 2.5}, "max_steps"),
         ({"ray_floor": float("-inf")}, "ray_floor"),
@@ -654,6 +656,13 @@ def test_run_slam_end_to_end(office_revisit_scans):
 def test_front_end_config_rejects_bad_values(kwargs, name):
     with pytest.raises(ValueError, match=name):
         FrontEndConfig(**kwargs)
+
+
+def test_front_end_config_blur_schedule_from_a_list_is_a_hashable_tuple():
+    # a config file gives a list; the jitted matcher hashes the settings
+    cfg = FrontEndConfig(blur_schedule_m=[0.1, 0])
+    assert cfg.blur_schedule_m == (0.1, 0.0)
+    assert hash(cfg) == hash(FrontEndConfig(blur_schedule_m=(0.1, 0.0)))
 
 
 def _front_inputs(n=4, b=8):

@@ -198,6 +198,15 @@ class FrontEndConfig:
             raise ValueError(
                 f"window_m ({self.window_m}) must be >= range_cap_m ({self.range_cap_m})"
             )
+        # a list (e.g. from a config file) would make the settings unhashable, and the
+        # jitted matcher takes them as a static argument: kept as a tuple
+        try:
+            sched = tuple(float(b) for b in self.blur_schedule_m)
+        except (TypeError, ValueError):
+            raise ValueError(
+                f"blur_schedule_m must be a sequence of numbers, got {self.blur_schedule_m!r}"
+            ) from None
+        object.__setattr__(self, "blur_schedule_m", sched)
         if len(self.blur_schedule_m) == 0 or any(
             not (math.isfinite(b) and b >= 0) for b in self.blur_schedule_m
         ):

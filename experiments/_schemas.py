@@ -1207,6 +1207,7 @@ class SlamLoops:
     radius_m: float = _f(positive)
     min_separation: int = _f(count)
     every: int = _f(count)
+    wide_search_xy_m: float = _f(nonnegative)
 
 
 @dataclass

@@ -129,6 +129,7 @@ def main(cfg: DictConfig) -> None:
         radius_m=cfg.loops.radius_m,
         min_separation=cfg.loops.min_separation,
         every=cfg.loops.every,
+        wide_search_xy_m=cfg.loops.wide_search_xy_m,
     )
     back = slam.BackEndConfig(
         resolution_m=cfg.front_end.resolution_m,

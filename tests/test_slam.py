@@ -3,6 +3,8 @@ matching, the growing grid map, loop closures, the back ends and the whole pipel
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import jaxlie
@@ -34,6 +36,7 @@ from lidarjax.slam import (
     trajectory_log_likelihood,
 )
 from lidarjax.slam._front_end import between_np
+from lidarjax.slam._loops import _wide_search
 from lidarjax.testing import finite_difference
 
 # float64 is enabled for the whole suite in tests/conftest.py (jax_enable_x64)
@@ -455,7 +458,9 @@ def office_revisit_loops(office_revisit_scans):
     est[:, 0] += 0.3 * s + 0.05 * np.sin(2 * np.pi * s)
     est[:, 1] += -0.2 * s**2
     est[:, 2] += 0.02 * s
-    return truth, find_loops(ranges, AZ, est, LoopConfig(every=5))
+    # the local search only (the drift is well within it); the wide search's second
+    # chance is tested on a revisit beyond it (office_far_revisit)
+    return truth, find_loops(ranges, AZ, est, LoopConfig(every=5, wide_search_xy_m=0.0))
 
 
 def _loop_errors(truth, loops):
@@ -485,6 +490,73 @@ def test_find_loops_every_accepted_loop_is_accurate(office_revisit_loops):
     truth, loops = office_revisit_loops
     xy, yaw = _loop_errors(truth, loops)
     assert xy.max() < 0.1 and yaw.max() < 0.02
+
+
+@pytest.fixture(scope="module")
+def office_far_revisit(office_revisit_scans):
+    """The revisit (after a lap, 44 m) with its estimate 2-3 m and 0.15 rad off, a drift
+    beyond the local loop search: loops without and with the wide search."""
+    truth, ranges = office_revisit_scans
+    est = truth.copy()
+    # turned by 0.15 rad about the revisit's centre and shifted by 2.5 m
+    c = truth[100:, :2].mean(0)
+    rot = np.array([[np.cos(0.15), -np.sin(0.15)], [np.sin(0.15), np.cos(0.15)]])
+    est[100:, :2] = c + (truth[100:, :2] - c) @ rot.T + np.array([2.0, -1.5])
+    est[100:, 2] = _wrap(truth[100:, 2] + 0.15)
+    cfg = LoopConfig(every=5, wide_search_xy_m=4.0)
+    narrow = find_loops(ranges, AZ, est, dataclasses.replace(cfg, wide_search_xy_m=0.0))
+    wide = find_loops(ranges, AZ, est, cfg)
+    return truth, est, narrow, wide
+
+
+def test_wide_search_finds_a_revisit_beyond_the_local_search(office_revisit_scans):
+    truth, ranges = office_revisit_scans
+    j, i = 24, 119  # the revisit's scan 119 sees the walls of scan 19, near scan 24
+    cfg = LoopConfig(wide_search_xy_m=4.0)
+    fcfg = dataclasses.replace(
+        FrontEndConfig(),
+        search_xy_m=cfg.search_xy_m,
+        search_yaw_rad=cfg.search_yaw_rad,
+        search_exclude_m=cfg.exclude_m,
+    )
+    grid = GridMap(fcfg.resolution_m, fcfg.range_cap_m)
+    for k in range(j - cfg.submap_half, j + cfg.submap_half + 1):
+        grid.add_scan(_between(truth[j], truth[k]), AZ, ranges[k])
+    rel = _between(truth[j], truth[i])
+    guess = rel + np.array([2.0, -1.5, 0.15])  # 2.5 m and 0.15 rad off
+    local = match_scan(grid, AZ, ranges[i], guess, fcfg, prior_xy_yaw=guess)
+    assert np.hypot(*(local.pose[:2] - rel[:2])) > 0.5  # the local search cannot reach it
+    start, margin = _wide_search(grid, AZ, ranges[i], guess, fcfg, cfg)
+    # the lattice: 0.2 m cells, 0.02 rad steps
+    assert np.hypot(*(start[:2] - rel[:2])) < 0.3 and abs(_wrap(start[2] - rel[2])) < 0.03
+    assert margin >= cfg.min_margin
+    m = match_scan(grid, AZ, ranges[i], start, fcfg, prior_xy_yaw=start)
+    assert np.hypot(*(m.pose[:2] - rel[:2])) < 0.03 and abs(_wrap(m.pose[2] - rel[2])) < 0.005
+
+
+@pytest.mark.slow  # ~90 s on 2 busy cores
+def test_find_loops_wide_search_closes_a_far_revisit(office_far_revisit):
+    truth, est, narrow, wide = office_far_revisit
+    rel_err = np.hypot(
+        *(_between(est[:35], est[100:])[:, :2] - _between(truth[:35], truth[100:])[:, :2]).T
+    )
+    assert rel_err.min() > 1.5 and rel_err.max() < 3.5  # beyond the local search's +-1 m
+
+    def revisit(loops):
+        return (loops.edges[:, 1] >= 100) & (loops.edges[:, 0] < 35)
+
+    def accurate(loops):
+        xy, yaw = _loop_errors(truth, loops)
+        return revisit(loops) & (xy < 0.07) & (yaw < 0.012)
+
+    assert accurate(narrow).sum() == 0
+    # the wide search runs only where the local match is rejected: it adds loops
+    assert {tuple(e) for e in narrow.edges} <= {tuple(e) for e in wide.edges}
+    assert accurate(wide).sum() >= 3
+    # every loop it adds is accurate (the drift bound rejects the office's aliased rooms)
+    added = np.array([e not in narrow.edges.tolist() for e in wide.edges.tolist()])
+    xy, yaw = _loop_errors(truth, wide)
+    assert added.any() and xy[added].max() < 0.07 and yaw[added].max() < 0.012
 
 
 def _overlap_by_distance(ranges, poses, j, i, half, dist):
@@ -759,6 +831,12 @@ def test_back_ends_reject_bad_inputs(change, name, optimize):
         ({"search_yaw_rad": float("nan")}, "search_yaw_rad"),
         ({"min_margin": -1.0}, "min_margin"),
         ({"exclude_m": float("inf")}, "exclude_m"),
+        ({"wide_search_xy_m": -1.0}, "wide_search_xy_m"),
+        ({"wide_search_yaw_rad": float("nan")}, "wide_search_yaw_rad"),
+        ({"wide_cell_m": 0.0}, "wide_cell_m"),
+        ({"wide_step_yaw_rad": -0.01}, "wide_step_yaw_rad"),
+        ({"wide_exclude_m": float("inf")}, "wide_exclude_m"),
+        ({"wide_drift_per_m": 0.0}, "wide_drift_per_m"),
     ],
 )
 def test_loop_config_rejects_bad_values(kwargs, name):

@@ -509,6 +509,7 @@ def office_far_revisit(office_revisit_scans):
     return truth, est, narrow, wide
 
 
+@pytest.mark.slow  # ~30 s (the office's scans and two compilations)
 def test_wide_search_finds_a_revisit_beyond_the_local_search(office_revisit_scans):
     truth, ranges = office_revisit_scans
     j, i = 24, 119  # the revisit's scan 119 sees the walls of scan 19, near scan 24

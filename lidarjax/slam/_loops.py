@@ -78,7 +78,7 @@ class LoopConfig:
             ``wide_cell_m`` cells, ``wide_step_yaw_rad`` heading steps, no prior), and
             the match again from its best pose. Tried only where the drift bound
             (``wide_drift_per_m``) exceeds the local search. Accepted with the same tests
-            (but ``max_correction_m``), if the coarse search's best beats its best pose
+            (all but ``max_correction_m``), if the coarse search's best beats its best pose
             farther than ``wide_exclude_m`` by ``min_margin`` too, and if the correction
             is within the drift bound (0: off). Orebro's front end (drift seed 0) put its first
             revisit (scans 90-100 against 7-9) 3.7-4.1 m and 0.28-0.31 rad off, and

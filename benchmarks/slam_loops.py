@@ -1,0 +1,82 @@
+"""Loop search of decay-rate SLAM (issue #24): seconds of :func:`lidarjax.slam.find_loops`
+with the local search only and with the wide search's second chance (the default), timed
+in the same run on the same front-end trajectory.
+
+On the first ``--scans`` scans of each log with the experiment's drifting odometry
+(``configs/slam.yaml``), the decay-rate front end (:func:`lidarjax.slam.run_front_end`)
+gives the trajectory; :func:`~lidarjax.slam.find_loops` then runs once with
+``LoopConfig(wide_search_xy_m=0)`` and once with ``LoopConfig()``, each timed on its second
+call (the first compiles). Reported per log: seconds, candidates tried, loops accepted, and
+the ratio of the two times. The 1-minute load average is recorded before every timing.
+Writes ``benchmarks/results/slam_loops.json``.
+
+Usage: ``python benchmarks/slam_loops.py [--logs intel fhw orebro] [--scans 300]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+
+import numpy as np
+from _harness import RESULTS, machine_info, write_json
+
+from lidarjax import slam
+from lidarjax.datasets import fetch, load_carmen
+from lidarjax.sim import wheel_odometry
+
+OUT = RESULTS / "slam_loops.json"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--logs", nargs="+", default=["intel", "fhw", "orebro"])
+    ap.add_argument("--scans", type=int, default=300)
+    args = ap.parse_args()
+    report = {"machine": machine_info(), "scans": args.scans, "logs": {}}
+    configs = {
+        "local_only": slam.LoopConfig(wide_search_xy_m=0.0),
+        "with_wide_search": slam.LoopConfig(),
+    }
+    for name in args.logs:
+        log = load_carmen(fetch(name))
+        n = min(args.scans, log.n_scans)
+        gt = log.poses[:n]
+        ranges = np.minimum(log.ranges_m[:n], log.max_range_m)
+        az = log.azimuths_rad
+        odo = wheel_odometry(
+            gt,
+            seed=0,
+            sigma_trans_rel=0.05,
+            sigma_rot_per_m=float(np.deg2rad(1.0)),
+            heading_bias_per_m=float(np.deg2rad(0.3)),
+            sigma_rot_per_rad=0.02,
+        )
+        poses = slam.run_front_end(ranges, az, odo).poses
+        path = float(np.hypot(*np.diff(poses[:, :2], axis=0).T).sum())
+        row: dict = {"n_scans": n, "path_m": path}
+        for key, cfg in configs.items():
+            # the first call compiles (the local match, the wide search); the second is
+            # timed
+            slam.find_loops(ranges, az, poses, cfg)
+            load = os.getloadavg()[0]
+            t = time.perf_counter()
+            loops = slam.find_loops(ranges, az, poses, cfg)
+            row[key] = {
+                "load_1min_before": load,
+                "seconds": time.perf_counter() - t,
+                "candidates": int(loops.n_tried),
+                "loops": int(len(loops.edges)),
+            }
+        row["ratio_wide_over_local"] = (
+            row["with_wide_search"]["seconds"] / row["local_only"]["seconds"]
+        )
+        report["logs"][name] = row
+        print(name, row, flush=True)
+    write_json(OUT, report)
+    print("wrote", OUT)
+
+
+if __name__ == "__main__":
+    main()

@@ -38,6 +38,23 @@ from lidarjax.slam._front_end import between_np
 OUT = RESULTS / "slam.json"
 
 
+def log_inputs(name: str, scans: int):
+    """``(log, n, ranges [n B], azimuths [B], odometry [n 3])`` of the first ``scans`` scans
+    of a shared log, with the experiment's drifting odometry (``configs/slam.yaml``)."""
+    log = load_carmen(fetch(name))
+    n = min(scans, log.n_scans)
+    ranges = np.minimum(log.ranges_m[:n], log.max_range_m)
+    odo = wheel_odometry(
+        log.poses[:n],
+        seed=0,
+        sigma_trans_rel=0.05,
+        sigma_rot_per_m=float(np.deg2rad(1.0)),
+        heading_bias_per_m=float(np.deg2rad(0.3)),
+        sigma_rot_per_rad=0.02,
+    )
+    return log, n, ranges, log.azimuths_rad, odo
+
+
 def _scan_rate(stamps):
     dt = np.diff(stamps)
     if dt.size == 0 or not np.all(dt > 0):
@@ -53,19 +70,7 @@ def main() -> None:
     args = ap.parse_args()
     report = {"machine": machine_info(), "scans": args.scans, "logs": {}}
     for name in args.logs:
-        log = load_carmen(fetch(name))
-        n = min(args.scans, log.n_scans)
-        gt = log.poses[:n]
-        ranges = np.minimum(log.ranges_m[:n], log.max_range_m)
-        az = log.azimuths_rad
-        odo = wheel_odometry(
-            gt,
-            seed=0,
-            sigma_trans_rel=0.05,
-            sigma_rot_per_m=float(np.deg2rad(1.0)),
-            heading_bias_per_m=float(np.deg2rad(0.3)),
-            sigma_rot_per_rad=0.02,
-        )
+        log, n, ranges, az, odo = log_inputs(name, args.scans)
         rate = _scan_rate(log.timestamps_s[:n])
         row: dict = {"n_scans": n, "scan_rate_hz": rate}
         for model in ("decay_rate", "endpoint"):

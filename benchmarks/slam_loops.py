@@ -21,10 +21,9 @@ import time
 
 import numpy as np
 from _harness import RESULTS, machine_info, write_json
+from slam import log_inputs  # benchmarks/slam.py
 
 from lidarjax import slam
-from lidarjax.datasets import fetch, load_carmen
-from lidarjax.sim import wheel_odometry
 
 OUT = RESULTS / "slam_loops.json"
 
@@ -40,19 +39,7 @@ def main() -> None:
         "with_wide_search": slam.LoopConfig(),
     }
     for name in args.logs:
-        log = load_carmen(fetch(name))
-        n = min(args.scans, log.n_scans)
-        gt = log.poses[:n]
-        ranges = np.minimum(log.ranges_m[:n], log.max_range_m)
-        az = log.azimuths_rad
-        odo = wheel_odometry(
-            gt,
-            seed=0,
-            sigma_trans_rel=0.05,
-            sigma_rot_per_m=float(np.deg2rad(1.0)),
-            heading_bias_per_m=float(np.deg2rad(0.3)),
-            sigma_rot_per_rad=0.02,
-        )
+        _, n, ranges, az, odo = log_inputs(name, args.scans)
         poses = slam.run_front_end(ranges, az, odo).poses
         path = float(np.hypot(*np.diff(poses[:, :2], axis=0).T).sum())
         row: dict = {"n_scans": n, "path_m": path}

@@ -1208,6 +1208,7 @@ class SlamLoops:
     min_separation: int = _f(count)
     every: int = _f(count)
     wide_search_xy_m: float = _f(nonnegative)
+    rounds: int = _f(count)
 
 
 @dataclass
@@ -1218,6 +1219,7 @@ class SlamPoseGraph:
 
 @dataclass
 class SlamBackEnd:
+    range_cap_m: float = _f(positive)
     max_steps: int = _f(count)
     rounds: int = _f(count)
 

@@ -22,7 +22,8 @@ from the corrected poses (``lidarjax.sim.wheel_odometry``, ``odometry`` settings
 Per log and variant: absolute trajectory error after SE(2) alignment (RMSE, mean; m),
 relative pose error per ``rpe_delta_m`` of path (translation RMSE m, rotation RMSE deg),
 map quality (p_ref RMSE, Sec. 9.5.1, of the ML grid of the aligned estimate against the
-grid of the corrected poses, over cells both observe), the front end's scans per second and
+grid of the corrected poses, over cells both observe; both grids trace the readings to
+``back_end.range_cap_m``, the back end's map), the front end's scans per second and
 real-time factor (scans/s over the log's scan rate, where the log's timestamps give one),
 and wall times per stage. Two reference-free consistency scores, for every variant and for
 the corrected poses themselves (row "reference (corrected poses)"): the mean and median
@@ -94,7 +95,7 @@ def _consistency(poses, ranges, az, back, min_separation) -> dict:
 def _scores(est, gt, ranges, az, spec, gt_map, cfg, back) -> dict:
     a = absolute_trajectory_error(est, gt)
     r = relative_pose_error(est, gt, delta_m=cfg.rpe_delta_m)
-    rates, seen = _grid(a.aligned, ranges, az, spec, cfg.front_end.range_cap_m)
+    rates, seen = _grid(a.aligned, ranges, az, spec, back.range_cap_m)
     mask = seen & gt_map[1]
     return {
         "ate_rmse_m": a.rmse_m,
@@ -123,6 +124,7 @@ def main(cfg: DictConfig) -> None:
     front = slam.FrontEndConfig(
         resolution_m=cfg.front_end.resolution_m,
         range_cap_m=cfg.front_end.range_cap_m,
+        window_m=cfg.front_end.range_cap_m + 2.0,
         blur_schedule_m=tuple(cfg.front_end.blur_schedule_m),
     )
     loops = slam.LoopConfig(
@@ -133,7 +135,7 @@ def main(cfg: DictConfig) -> None:
     )
     back = slam.BackEndConfig(
         resolution_m=cfg.front_end.resolution_m,
-        range_cap_m=cfg.front_end.range_cap_m,
+        range_cap_m=cfg.back_end.range_cap_m,
         max_steps=cfg.back_end.max_steps,
         rounds=cfg.back_end.rounds,
     )
@@ -155,10 +157,10 @@ def main(cfg: DictConfig) -> None:
             sigma_rot_per_rad=o.sigma_rot_per_rad,
         )
         res = cfg.map_resolution_m
-        lo = np.floor((gt[:, :2].min(0) - front.range_cap_m) / res) - 2
-        hi = np.ceil((gt[:, :2].max(0) + front.range_cap_m) / res) + 2
+        lo = np.floor((gt[:, :2].min(0) - back.range_cap_m) / res) - 2
+        hi = np.ceil((gt[:, :2].max(0) + back.range_cap_m) / res) + 2
         spec = GridSpec(lo * res, res, tuple(int(v) for v in hi - lo))
-        gt_map = _grid(gt, ranges, az, spec, front.range_cap_m)
+        gt_map = _grid(gt, ranges, az, spec, back.range_cap_m)
         rate = _scan_rate(log.timestamps_s[:n])
         est: dict[str, np.ndarray] = {"odometry": odo}
         info: dict[str, dict] = {"odometry": {}}
@@ -184,6 +186,7 @@ def main(cfg: DictConfig) -> None:
                     back_end="none",
                     robust_chain=cfg.pose_graph.robust_chain,
                     revisits=cfg.pose_graph.revisits,
+                    loop_rounds=cfg.loops.rounds,
                 ),
                 progress=True,
             )
@@ -234,6 +237,7 @@ def main(cfg: DictConfig) -> None:
                     back_end="none",
                     robust_chain=cfg.pose_graph.robust_chain,
                     revisits=cfg.pose_graph.revisits,
+                    loop_rounds=cfg.loops.rounds,
                 ),
                 progress=True,
             )

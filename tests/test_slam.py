@@ -11,6 +11,7 @@ import jaxlie
 import numpy as np
 import pytest
 
+import lidarjax.slam._loops as loops_module
 from lidarjax.metrics import absolute_trajectory_error
 from lidarjax.rays import from_scan
 from lidarjax.raytrace import GridSpec, accumulate
@@ -287,11 +288,14 @@ def test_front_end_on_a_whole_lap():
 
 def test_match_scan_recovers_a_perturbed_pose(office_short):
     truth, ranges, _ = office_short
-    cfg = FrontEndConfig()
+    # the 10 m range cap these bounds were measured with (the default is 20 m since stop
+    # 46; on this scan it ends 0.013-0.031 m and <= 0.005 rad off, on the office's other
+    # scans 15-31 sometimes better, sometimes worse than at 10 m)
+    cfg = FrontEndConfig(range_cap_m=10.0, window_m=12.0)
     grid = GridMap(cfg.resolution_m, cfg.range_cap_m)
     for k in range(0, truth.shape[0], 2):  # the map of the even scans at the true poses
         grid.add_scan(truth[k], AZ, ranges[k])
-    # an odd scan (not in the map). Measured with the 0.05 m defaults: 0.012-0.018 m and
+    # an odd scan (not in the map). Measured with 0.05 m cells: 0.012-0.018 m and
     # <= 0.003 rad from 0.1-0.2 m / 0.03-0.05 rad off. (Scan 25 looks along a corridor: from
     # 0.2 m off it ends 0.11-0.13 m away, from 0.1 m off 0.04 m; not asserted.)
     for k in (15,):
@@ -447,17 +451,22 @@ def office_revisit_scans():
     return truth, ranges
 
 
-@pytest.fixture(scope="module")
-def office_revisit_loops(office_revisit_scans):
-    """Loops found on the revisit along the true poses under a smooth drift (about 0.4 m
-    at the end)."""
-    truth, ranges = office_revisit_scans
+def _office_revisit_estimate(truth):
     n = truth.shape[0]
     s = np.arange(n) / (n - 1)
     est = truth.copy()
     est[:, 0] += 0.3 * s + 0.05 * np.sin(2 * np.pi * s)
     est[:, 1] += -0.2 * s**2
     est[:, 2] += 0.02 * s
+    return est
+
+
+@pytest.fixture(scope="module")
+def office_revisit_loops(office_revisit_scans):
+    """Loops found on the revisit along the true poses under a smooth drift (about 0.4 m
+    at the end)."""
+    truth, ranges = office_revisit_scans
+    est = _office_revisit_estimate(truth)
     # the local search only (the drift is well within it); the wide search's second
     # chance is tested on a revisit beyond it (office_far_revisit)
     return truth, find_loops(ranges, AZ, est, LoopConfig(every=5, wide_search_xy_m=0.0))
@@ -490,6 +499,22 @@ def test_find_loops_every_accepted_loop_is_accurate(office_revisit_loops):
     truth, loops = office_revisit_loops
     xy, yaw = _loop_errors(truth, loops)
     assert xy.max() < 0.1 and yaw.max() < 0.02
+
+
+@pytest.mark.slow  # ~60 s: the same search again
+def test_find_loops_does_not_match_known_pairs_again(office_revisit_scans, office_revisit_loops):
+    # a later round (SlamConfig.loop_rounds) passes the loops it has as ``known``: those
+    # pairs are skipped, every other candidate is matched exactly as before
+    truth, ranges = office_revisit_scans
+    _, loops = office_revisit_loops
+    assert len(loops.edges) >= 4
+    est = _office_revisit_estimate(truth)
+    known = loops.edges[::2]
+    again = find_loops(ranges, AZ, est, LoopConfig(every=5, wide_search_xy_m=0.0), known=known)
+    assert again.n_tried == loops.n_tried - len(known)
+    rest = [k for k, e in enumerate(loops.edges.tolist()) if k % 2]
+    np.testing.assert_array_equal(again.edges, loops.edges[rest])
+    np.testing.assert_allclose(again.measurements, loops.measurements[rest], atol=1e-9)
 
 
 @pytest.fixture(scope="module")
@@ -686,6 +711,8 @@ def test_run_slam_end_to_end(office_revisit_scans):
     for p in (r.poses, r.front_end_poses, r.pose_graph_poses):
         assert p.shape == (n, 3) and np.all(np.isfinite(p))
     assert len(r.loops.edges) > 0 and len(r.revisits.edges) > 0
+    # the second loop round adds pairs, never one twice
+    assert len({tuple(e) for e in r.loops.edges.tolist()}) == len(r.loops.edges)
     assert set(r.seconds) == {"front_end", "loops", "pose_graph", "back_end"}
     assert all(v >= 0 for v in r.seconds.values())
     assert r.front_end_seconds_per_scan.shape == (n,)
@@ -838,6 +865,8 @@ def test_back_ends_reject_bad_inputs(change, name, optimize):
         ({"wide_step_yaw_rad": -0.01}, "wide_step_yaw_rad"),
         ({"wide_exclude_m": float("inf")}, "wide_exclude_m"),
         ({"wide_drift_per_m": 0.0}, "wide_drift_per_m"),
+        ({"retry_xy_m": -0.1}, "retry_xy_m"),
+        ({"retry_yaw_rad": float("nan")}, "retry_yaw_rad"),
     ],
 )
 def test_loop_config_rejects_bad_values(kwargs, name):
@@ -858,6 +887,66 @@ def test_loop_searches_reject_bad_arrays(search):
         search(r[0], a, o)
 
 
+@pytest.mark.parametrize("known", [np.zeros((2, 3), np.int64), np.zeros(4, np.int64), [[0.5, 40]]])
+def test_find_loops_rejects_bad_known_pairs(known):
+    r, a, o = _front_inputs()
+    with pytest.raises(ValueError, match="known"):
+        find_loops(r, a, o, known=known)
+
+
+def test_find_loops_rejects_bad_previous_poses():
+    r, a, o = _front_inputs()
+    with pytest.raises(ValueError, match="previous_poses"):
+        find_loops(r, a, o, previous_poses=o[:-1])
+    with pytest.raises(ValueError, match="previous_poses"):
+        find_loops(r, a, o, previous_poses=o + np.nan)
+
+
+def test_find_loops_skips_pairs_whose_relative_pose_has_not_moved(office_revisit_scans):
+    # a later round does not match a candidate pair again when its relative pose is the
+    # previous round's: relative poses do not change under a rigid motion of the whole
+    # trajectory, so nothing is matched
+    truth, ranges = office_revisit_scans
+    est = _office_revisit_estimate(truth)
+    c, s = np.cos(0.7), np.sin(0.7)
+    moved = np.column_stack(
+        [c * est[:, 0] - s * est[:, 1] + 3.0, s * est[:, 0] + c * est[:, 1] - 1.0, est[:, 2] + 0.7]
+    )
+    r = find_loops(ranges, AZ, est, LoopConfig(every=5), previous_poses=moved)
+    assert r.n_tried == 0 and len(r.edges) == 0
+
+
+class _Matched(Exception):
+    pass
+
+
+@pytest.mark.parametrize(("shift_m", "retried"), [(0.05, False), (0.5, True)])
+def test_find_loops_retries_only_pairs_that_moved(
+    office_revisit_scans, monkeypatch, shift_m, retried
+):
+    # the previous round put scan 130 (the last one searched with every=5) shift_m off:
+    # its pair is matched again only beyond retry_xy_m (0.1 m); no other pair is
+    truth, ranges = office_revisit_scans
+    est = _office_revisit_estimate(truth)
+    before = est.copy()
+    before[130, 0] += shift_m
+    seen = []
+
+    def spy(grid, az, rng, start, fcfg, prior_xy_yaw=None):
+        seen.append(rng)
+        raise _Matched
+
+    monkeypatch.setattr(loops_module, "match_scan", spy)
+    cfg = LoopConfig(every=5)
+    if retried:
+        with pytest.raises(_Matched):
+            find_loops(ranges, AZ, est, cfg, previous_poses=before)
+        assert len(seen) == 1 and np.array_equal(seen[0], ranges[130])
+    else:
+        r = find_loops(ranges, AZ, est, cfg, previous_poses=before)
+        assert r.n_tried == 0 and not seen
+
+
 @pytest.mark.parametrize(
     ("kwargs", "name"),
     [
@@ -872,6 +961,9 @@ def test_loop_searches_reject_bad_arrays(search):
         ({"revisit_min_overlap": 1.5}, "revisit_min_overlap"),
         ({"revisit_cell_m": 0.0}, "revisit_cell_m"),
         ({"revisit_sigma_scale": float("nan")}, "revisit_sigma_scale"),
+        ({"loop_rounds": 0}, "loop_rounds"),
+        ({"loop_rounds": 2.0}, "loop_rounds"),
+        ({"loop_rounds": True}, "loop_rounds"),
     ],
 )
 def test_slam_config_rejects_bad_values(kwargs, name):

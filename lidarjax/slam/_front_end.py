@@ -92,11 +92,20 @@ class FrontEndConfig:
     Attributes:
         resolution_m: map cell size (m).
         range_cap_m: readings at or beyond this range are treated as no-returns traced to
-            it (m), both in the map and in matching; far readings are the least accurate.
+            it (m), both in the map and in matching; far readings are the least accurate,
+            but they fix the heading. 20 m keeps 98.6-99.8 % of the shared logs' returns
+            (10 m: 88-98 %); front-end ATE (drift seeds 0-2 on orebro, 0-1 on fhw, 0 on
+            intel) went from 2.07 / 1.33 / 0.98, 1.57 / 1.60 and 0.277 m at 10 m to
+            0.89 / 0.64 / 0.44, 1.46 / 1.17 and 0.282 m at 20 m (orebro, seed 0: the
+            heading error summed over scans 7-90 went from -0.29 to -0.007 rad).
         blur_schedule_m: Gaussian blur widths (m) of the coarse-to-fine matching stages.
         window_m: half width of the square map window a scan is matched against (m); at
             least ``range_cap_m`` plus the largest expected motion between scans.
-        n_nodes: midpoint nodes per ray of the optical depth.
+        n_nodes: midpoint nodes per ray of the optical depth. The node spacing is the
+            ray's length over ``n_nodes``; 512 keeps it below a cell (0.78 of a 0.05 m
+            cell) up to the 20 m range cap, so a ray crossing a one-cell wall never steps
+            over it. With 256 at the 20 m cap (1.56 cells), orebro's front end (drift seed
+            0) had an ATE of 0.891 m; with 512, 0.251 m.
         max_steps: BFGS iterations per stage.
         prior_sigma_xy_m, prior_sigma_yaw_rad: standard deviations of the Gaussian prior of
             :func:`match_scan` when none is given (m, rad).
@@ -153,10 +162,10 @@ class FrontEndConfig:
     """
 
     resolution_m: float = 0.05
-    range_cap_m: float = 10.0
+    range_cap_m: float = 20.0
     blur_schedule_m: tuple[float, ...] = (0.3, 0.1, 0.0)
-    window_m: float = 12.0
-    n_nodes: int = 256
+    window_m: float = 22.0
+    n_nodes: int = 512
     max_steps: int = 60
     prior_sigma_xy_m: float = 0.5
     prior_sigma_yaw_rad: float = 0.2

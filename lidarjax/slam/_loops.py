@@ -92,6 +92,12 @@ class LoopConfig:
             of the distance travelled (orebro: 4.1 m after 74 m); on a simulated office,
             an aliased room 2.1 m away after 27 m (7.7 %) passed every other test.
             Missing a loop is the safe failure, so the bound is tight.
+        retry_xy_m, retry_yaw_rad: with ``previous_poses`` (a later round of
+            :func:`find_loops`), a candidate pair ``(j, i)`` is matched again only if its
+            estimated relative pose has moved by more than this (m or rad) since, or if
+            scan ``i``'s candidates there were all more than ``submap_half`` scans from
+            ``j`` (the same start on nearly the same submap gives the same match; the
+            nearest candidate may switch between neighbouring scans of one visit).
     """
 
     radius_m: float = 4.0
@@ -116,6 +122,8 @@ class LoopConfig:
     wide_step_yaw_rad: float = 0.02
     wide_exclude_m: float = 1.0
     wide_drift_per_m: float = 0.06
+    retry_xy_m: float = 0.1
+    retry_yaw_rad: float = 0.02
 
     def __post_init__(self):
         for name in ("radius_m", "max_correction_m", "agree_m"):
@@ -144,6 +152,8 @@ class LoopConfig:
             "min_margin",
             "wide_search_xy_m",
             "wide_search_yaw_rad",
+            "retry_xy_m",
+            "retry_yaw_rad",
         ):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
@@ -356,6 +366,8 @@ def find_loops(
     cfg: LoopConfig | None = None,
     front_cfg: FrontEndConfig | None = None,
     *,
+    known: np.ndarray | None = None,
+    previous_poses: np.ndarray | None = None,
     progress: bool = False,
 ) -> Loops:
     """Search loop closures along an estimated trajectory (module docstring).
@@ -363,8 +375,13 @@ def find_loops(
     Args:
         ranges_m: ``[N B]`` readings (m).
         azimuths_rad: ``[B]`` beam angles (rad).
-        poses: ``[N 3]`` estimated poses (e.g. the front end's).
+        poses: ``[N 3]`` estimated poses (e.g. the front end's, or a pose graph's).
         cfg: loop settings; front_cfg: matching settings (map, blur stages).
+        known: ``[K 2]`` pairs ``(j, i)`` already closed (an earlier round's loops): a
+            candidate pair among them is not matched again (nor counted in ``n_tried``).
+        previous_poses: ``[N 3]`` the poses an earlier round searched along (None: none):
+            a candidate pair of a visit searched there too is skipped unless its relative
+            pose has moved by more than ``cfg.retry_xy_m`` or ``cfg.retry_yaw_rad``.
         progress: tqdm progress bar.
 
     Returns:
@@ -383,6 +400,18 @@ def find_loops(
     poses = np.asarray(poses, float)
     _check_scans(rng, az, poses)
     n = rng.shape[0]
+    if known is None:
+        known = np.zeros((0, 2), np.int64)
+    known = np.asarray(known)
+    if known.ndim != 2 or known.shape[1] != 2 or not np.issubdtype(known.dtype, np.integer):
+        raise ValueError(f"known must be a [K, 2] integer array of pairs, got {known.shape}")
+    skip = {(int(j), int(i)) for j, i in known}
+    if previous_poses is not None:
+        previous_poses = np.asarray(previous_poses, float)
+        if previous_poses.shape != poses.shape or not np.all(np.isfinite(previous_poses)):
+            raise ValueError(
+                f"previous_poses must be a finite [{n}, 3] array, got {previous_poses.shape}"
+            )
     starts = _starts(cfg)
     searched = cfg.search_xy_m > 0 or cfg.search_yaw_rad > 0
     # distance travelled along the estimate (m), which bounds its drift
@@ -399,7 +428,16 @@ def find_loops(
 
         it = tqdm(it, desc="loop closures", unit="scan")
     for i in it:
+        before = () if previous_poses is None else _candidates(previous_poses, i, cfg)
         for j in _candidates(poses, i, cfg):
+            if (j, i) in skip:
+                continue
+            if any(abs(j - b) <= cfg.submap_half for b in before):
+                moved = between_np(
+                    between_np(previous_poses[j], previous_poses[i]), between_np(poses[j], poses[i])
+                )
+                if np.hypot(*moved[:2]) <= cfg.retry_xy_m and abs(moved[2]) <= cfg.retry_yaw_rad:
+                    continue
             n_tried += 1
             lo, hi = max(0, j - cfg.submap_half), min(n, j + cfg.submap_half + 1)
             # the submap in the frame of scan j

@@ -1,0 +1,66 @@
+"""Front end of decay-rate SLAM (issue #24) at two range caps: scans per second and
+real-time factor of :func:`lidarjax.slam.run_front_end` with the defaults since stop 46
+(``range_cap_m=20``, ``window_m=22``, ``n_nodes=512``) against those before
+(``range_cap_m=10``, ``window_m=12``, ``n_nodes=256``), timed in the same run.
+
+On the first ``--scans`` scans of each log with the experiment's drifting odometry
+(``configs/slam.yaml``; ``log_inputs`` of ``benchmarks/slam.py``), the front end runs once
+per configuration. Scans/s leave out the first two scans (the first match compiles).
+The real-time factor is scans/s over the log's scan rate, where its timestamps give one.
+The 1-minute load average is recorded before every timing. Writes
+``benchmarks/results/slam_range_cap.json``.
+
+Usage: ``python benchmarks/slam_range_cap.py [--logs intel fhw orebro] [--scans 150]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+
+import numpy as np
+from _harness import RESULTS, machine_info, write_json
+from slam import _scan_rate, log_inputs  # benchmarks/slam.py
+
+from lidarjax import slam
+
+OUT = RESULTS / "slam_range_cap.json"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--logs", nargs="+", default=["intel", "fhw", "orebro"])
+    ap.add_argument("--scans", type=int, default=150)
+    args = ap.parse_args()
+    report = {"machine": machine_info(), "scans": args.scans, "logs": {}}
+    for name in args.logs:
+        log, n, ranges, az, odo = log_inputs(name, args.scans)
+        rate = _scan_rate(log.timestamps_s[:n])
+        row: dict = {"n_scans": n, "scan_rate_hz": rate}
+        configs = {
+            "cap_10_m": slam.FrontEndConfig(range_cap_m=10.0, window_m=12.0, n_nodes=256),
+            "cap_20_m": slam.FrontEndConfig(),
+        }
+        for key, cfg in configs.items():
+            load = os.getloadavg()[0]
+            fe = slam.run_front_end(ranges, az, odo, cfg)
+            per = fe.seconds_per_scan[2:]  # scan 1's match compiles
+            sps = float(len(per) / per.sum())
+            row[key] = {
+                "range_cap_m": cfg.range_cap_m,
+                "n_nodes": cfg.n_nodes,
+                "load_1min_before": load,
+                "scans_per_s": sps,
+                "median_s_per_scan": float(np.median(per)),
+                "first_scan_s": float(fe.seconds_per_scan[0] + fe.seconds_per_scan[1]),
+                "real_time_factor": None if rate is None else sps / rate,
+            }
+        row["ratio_20_over_10"] = row["cap_20_m"]["scans_per_s"] / row["cap_10_m"]["scans_per_s"]
+        report["logs"][name] = row
+        print(name, row, flush=True)
+    write_json(OUT, report)
+    print("wrote", OUT)
+
+
+if __name__ == "__main__":
+    main()

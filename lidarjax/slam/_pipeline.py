@@ -73,10 +73,10 @@ class SlamConfig:
             ``LoopConfig.retry_xy_m``, are not matched again), adds the new loops and
             solves the pose graph again; it stops early when a round finds none. The
             pose graph brings a drifted revisit within the loop search's reach. Pose
-            graph ATE, one round -> two, on the shared logs (20 m range cap, drift seeds
-            0-2 on orebro, 0-1 on fhw): orebro 0.763 / 0.292 / 0.379 -> 0.326 / 0.292 /
-            0.376 m, fhw 0.166 / 0.135 -> 0.165 / 0.138 m (10 m cap: fhw seed 0
-            0.195 -> 0.132 m, orebro seed 0 0.715 -> 0.737 m).
+            graph ATE, one round -> two, on the shared logs (20 m range cap, 256 nodes
+            per ray, drift seeds 0-2 on orebro, 0-1 on fhw): orebro 0.763 / 0.292 /
+            0.379 -> 0.326 / 0.292 / 0.376 m, fhw 0.166 / 0.135 -> 0.165 / 0.138 m (10 m
+            cap: fhw seed 0 0.195 -> 0.132 m, orebro seed 0 0.715 -> 0.737 m).
     """
 
     front: FrontEndConfig = dataclasses.field(default_factory=FrontEndConfig)
@@ -131,7 +131,7 @@ class SlamResult:
         poses: the final estimate (after the back end, or the pose graph for ``"none"``).
         front_end_poses: the front end's.
         pose_graph_poses: after the pose graph.
-        loops: the accepted loop closures.
+        loops: the accepted loop closures (of every round).
         revisits: :func:`~lidarjax.slam.find_revisits`'s pairs (empty without
             ``cfg.revisits``).
         back_end: the back end's result (None for ``"none"``).

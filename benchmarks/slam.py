@@ -62,6 +62,25 @@ def _scan_rate(stamps):
     return float(dt.size / (stamps[-1] - stamps[0]))
 
 
+def time_front_end(ranges, az, odo, cfg, rate):
+    """One timed :func:`lidarjax.slam.run_front_end` run: ``(record, result)``. The record
+    holds the 1-minute load before it, scans/s and the median seconds per scan without the
+    first two scans (the first match compiles; their sum is ``first_scan_s``), and the
+    real-time factor (scans/s over ``rate``, Hz; None without one)."""
+    load = os.getloadavg()[0]
+    fe = slam.run_front_end(ranges, az, odo, cfg)
+    per = fe.seconds_per_scan[2:]
+    sps = float(len(per) / per.sum())
+    record = {
+        "load_1min_before": load,
+        "scans_per_s": sps,
+        "median_s_per_scan": float(np.median(per)),
+        "first_scan_s": float(fe.seconds_per_scan[0] + fe.seconds_per_scan[1]),
+        "real_time_factor": None if rate is None else sps / rate,
+    }
+    return record, fe
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--logs", nargs="+", default=["intel", "fhw", "orebro"])
@@ -74,17 +93,8 @@ def main() -> None:
         rate = _scan_rate(log.timestamps_s[:n])
         row: dict = {"n_scans": n, "scan_rate_hz": rate}
         for model in ("decay_rate", "endpoint"):
-            load = os.getloadavg()[0]
-            fe = slam.run_front_end(ranges, az, odo, slam.FrontEndConfig(model=model))
-            per = fe.seconds_per_scan[2:]  # scan 1's match compiles
-            sps = float(len(per) / per.sum())
-            row[f"front_end_{model}"] = {
-                "load_1min_before": load,
-                "scans_per_s": sps,
-                "median_s_per_scan": float(np.median(per)),
-                "first_scan_s": float(fe.seconds_per_scan[0] + fe.seconds_per_scan[1]),
-                "real_time_factor": None if rate is None else sps / rate,
-            }
+            cfg = slam.FrontEndConfig(model=model)
+            row[f"front_end_{model}"], fe = time_front_end(ranges, az, odo, cfg, rate)
             if model == "decay_rate":
                 start = fe.poses
         loops = slam.find_loops(ranges, az, start)

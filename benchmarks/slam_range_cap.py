@@ -16,11 +16,9 @@ Usage: ``python benchmarks/slam_range_cap.py [--logs intel fhw orebro] [--scans 
 from __future__ import annotations
 
 import argparse
-import os
 
-import numpy as np
 from _harness import RESULTS, machine_info, write_json
-from slam import _scan_rate, log_inputs  # benchmarks/slam.py
+from slam import _scan_rate, log_inputs, time_front_end  # benchmarks/slam.py
 
 from lidarjax import slam
 
@@ -42,19 +40,8 @@ def main() -> None:
             "cap_20_m": slam.FrontEndConfig(),
         }
         for key, cfg in configs.items():
-            load = os.getloadavg()[0]
-            fe = slam.run_front_end(ranges, az, odo, cfg)
-            per = fe.seconds_per_scan[2:]  # scan 1's match compiles
-            sps = float(len(per) / per.sum())
-            row[key] = {
-                "range_cap_m": cfg.range_cap_m,
-                "n_nodes": cfg.n_nodes,
-                "load_1min_before": load,
-                "scans_per_s": sps,
-                "median_s_per_scan": float(np.median(per)),
-                "first_scan_s": float(fe.seconds_per_scan[0] + fe.seconds_per_scan[1]),
-                "real_time_factor": None if rate is None else sps / rate,
-            }
+            record, _ = time_front_end(ranges, az, odo, cfg, rate)
+            row[key] = {"range_cap_m": cfg.range_cap_m, "n_nodes": cfg.n_nodes, **record}
         row["ratio_20_over_10"] = row["cap_20_m"]["scans_per_s"] / row["cap_10_m"]["scans_per_s"]
         report["logs"][name] = row
         print(name, row, flush=True)

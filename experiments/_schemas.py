@@ -1231,6 +1231,7 @@ class SlamExperimentConfig:
     seed: int = _f(nonnegative)
     logs: list[str] = MISSING
     max_scans: int | None = _f(count)
+    azimuth_layout: str = _f(one_of("spread", "sweep"))
     odometry: SlamOdometry = _node(SlamOdometry)
     front_end: SlamFrontEnd = _node(SlamFrontEnd)
     loops: SlamLoops = _node(SlamLoops)

@@ -143,7 +143,7 @@ def main(cfg: DictConfig) -> None:
     rows = []
     traj = {}
     for name in cfg.logs:
-        log = load_carmen(fetch(name))
+        log = load_carmen(fetch(name), azimuth_layout=cfg.azimuth_layout)
         n = log.n_scans if cfg.max_scans is None else min(cfg.max_scans, log.n_scans)
         gt = log.poses[:n]
         ranges = np.minimum(log.ranges_m[:n], log.max_range_m)

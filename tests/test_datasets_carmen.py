@@ -381,3 +381,92 @@ def test_full_circle_resolution_is_accepted(tmp_path):
     log = load_carmen(_write(tmp_path, text))
     assert np.all(np.isfinite(log.azimuths_rad))
     assert log.fov_rad == pytest.approx(2 * math.pi)
+
+
+# --------------------------------------------------------------------------- azimuth layouts
+
+
+def _scan_line(n: int) -> str:
+    return f"FLASER {n} " + " ".join(["1.0"] * n) + " 0 0 0 0 0 0 1.0 host 1.0"
+
+
+@pytest.mark.parametrize(
+    ("n", "param", "spread_deg", "sweep_deg"),
+    [
+        (5, None, [-90, -45, 0, 45, 90], [-90, -45, 0, 45, 90]),  # odd: the layouts agree
+        (4, None, [-90, -30, 30, 90], [-90, -45, 0, 45]),  # even: a 5-beam sweep minus one
+        (5, 30.0, [-60, -30, 0, 30, 60], [-60, -30, 0, 30, 60]),
+        (4, 30.0, [-45, -15, 15, 45], [-60, -30, 0, 30]),
+        (2, None, [-90, 90], [-90, 0]),
+        (1, None, [0], [0]),
+        (1, 30.0, [0], [0]),
+    ],
+)
+def test_azimuth_layouts(tmp_path, n, param, spread_deg, sweep_deg):
+    lines = [] if param is None else [f"PARAM laser_front_laser_resolution {param} nohost 0"]
+    path = _write(tmp_path, "\n".join([*lines, _scan_line(n), _scan_line(n)]))
+    for layout, want in (("spread", spread_deg), ("sweep", sweep_deg)):
+        az = load_carmen(path, azimuth_layout=layout).azimuths_rad
+        np.testing.assert_allclose(az, np.radians(want), rtol=0, atol=1e-12, err_msg=layout)
+    # The default is the shared data README's layout.
+    np.testing.assert_allclose(
+        load_carmen(path).azimuths_rad, np.radians(spread_deg), rtol=0, atol=1e-12
+    )
+
+
+def test_sweep_layout_field_of_view_check(tmp_path):
+    # 4 beams at 100 deg: spread over 3 gaps = 300 deg is fine; a sweep has 4 gaps = 400 deg.
+    text = "\n".join(["# log", "PARAM laser_front_laser_resolution 100 nohost 0", _scan_line(4)])
+    path = _write(tmp_path, text)
+    assert load_carmen(path).fov_rad == pytest.approx(math.radians(300))
+    with pytest.raises(DatasetFormatError, match="400 deg") as info:
+        load_carmen(path, azimuth_layout="sweep")
+    assert info.value.line == 2
+
+
+@pytest.mark.parametrize("layout", ["Sweep", "", None, 1, "centred"])
+def test_bad_azimuth_layout(tmp_path, layout):
+    path = _write(tmp_path, SMALL_LOG)
+    with pytest.raises(ValueError, match="azimuth_layout"):
+        load_carmen(path, azimuth_layout=layout)
+
+
+@pytest.mark.parametrize(
+    ("name", "first_deg", "last_deg"),
+    [
+        ("intel", -90.0, 89.0),  # 180 beams, no resolution PARAM
+        ("fhw", -90.0, 89.0),  # 180 beams
+        ("freiburg-101", -90.0, 89.5),  # 360 beams, PARAM resolution 0.5
+        ("orebro", -90.0, 90.0),  # 181 beams: as spread
+    ],
+)
+def test_sweep_azimuths_of_shared_logs(name, first_deg, last_deg):
+    az = load_carmen(fetch(name), azimuth_layout="sweep").azimuths_rad
+    assert az[0] == pytest.approx(math.radians(first_deg), abs=1e-12)
+    assert az[-1] == pytest.approx(math.radians(last_deg), abs=1e-12)
+    step = math.radians(last_deg - first_deg) / (az.shape[0] - 1)
+    np.testing.assert_allclose(np.diff(az), step, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("name", ["intel", "fhw", "edmonton"])
+def test_sweep_layout_is_the_self_consistent_one(name):
+    """On the corrected poses, end points of different visits (scans >= 30 apart) lie
+    closer together with the sweep layout than with the README's spread layout, and
+    rotating the sweep by a quarter step either way moves them apart again (first 300
+    scans; the whole logs agree, see ``load_carmen``)."""
+    from lidarjax.metrics import cross_visit_distance
+
+    log = load_carmen(fetch(name))
+    k = 300
+    poses, ranges = log.poses[:k], log.ranges_m[:k]
+
+    def median(az):
+        return cross_visit_distance(poses, ranges, az, max_range_m=10.0).median_m
+
+    spread = median(log.azimuths_rad)
+    sweep_az = load_carmen(fetch(name), azimuth_layout="sweep").azimuths_rad
+    sweep = median(sweep_az)
+    quarter = 0.25 * (sweep_az[1] - sweep_az[0])
+    assert sweep < spread
+    assert sweep < median(sweep_az + quarter)
+    assert sweep < median(sweep_az - quarter)

@@ -19,6 +19,7 @@ from __future__ import annotations
 import importlib
 import warnings
 
+from ._carmen import AZIMUTH_LAYOUTS as AZIMUTH_LAYOUTS
 from ._carmen import CarmenLog as CarmenLog
 from ._carmen import load_carmen as load_carmen
 from ._errors import DataChecksumError as DataChecksumError

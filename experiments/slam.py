@@ -265,6 +265,7 @@ def main(cfg: DictConfig) -> None:
         rows.append((name, "reference (corrected poses)", ref))
         results["logs"][name] = {
             "n_scans": n,
+            "azimuth_layout": cfg.azimuth_layout,
             "scan_rate_hz": rate,
             "variants": per,
             "reference_consistency": ref,

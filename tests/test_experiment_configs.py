@@ -219,6 +219,7 @@ VALUE_ERRORS = [
     ("slam", ["front_end.range_cap_m=0"], "front_end.range_cap_m = 0.0", "> 0"),
     ("slam", ["loops.min_separation=5"], "loops.min_separation = 5", "> 10"),
     ("slam", ["max_scans=0"], "max_scans = 0", ">= 1"),
+    ("slam", ["azimuth_layout=centred"], "azimuth_layout = 'centred'", "must be one of"),
 ]
 
 

@@ -544,6 +544,7 @@ def test_slam_small(tmp_path):
         "variants=[decay_rate_joint,decay_rate_alternating,decay_rate_pose_graph,endpoint,"
         "icp_gtsam,reference_back_end]",
     )
+    assert res["logs"]["orebro"]["azimuth_layout"] == "sweep"  # configs/slam.yaml
     per = res["logs"]["orebro"]["variants"]
     assert set(per) == {
         "odometry",

@@ -214,17 +214,17 @@ def load_carmen(
       (``m = n_beams / 2``: 180 beams lie at -90 ... +89 degrees, 360 at -90 ... +89.5).
       For odd counts both layouts agree. On the shared logs' corrected poses the sweep
       layout is the self-consistent one: with it the end points of scans at least 30
-      apart lie closer to each other (median nearest-neighbour distance, ``metrics.
-      cross_visit_distance``) on all seven logs with 180 or 360 beams (intel 9.95 ->
-      8.82 mm, fhw 18.84 -> 16.27 mm, edmonton 37.6 -> 33.2 mm, freiburg-101 11.3 ->
-      10.2 mm), and rotating the sweep by a quarter step either way raises that median on
-      all seven.
+      apart lie closer to each other (median nearest-neighbour distance,
+      ``lidarjax.metrics.cross_visit_distance``) on all seven logs with 180 or 360 beams
+      (intel 9.95 -> 8.82 mm, fhw 18.84 -> 16.27 mm, edmonton 37.6 -> 33.2 mm,
+      freiburg-101 11.3 -> 10.2 mm), and rotating the sweep by a quarter step either way
+      raises that median on all seven.
 
-    The no-return value
-    ``max_range_m`` is the largest reading in the log. Unless given, ``usable_range_m`` is
-    ``(1 - NO_RETURN_MARGIN) * max_range_m`` (sensors report saturated readings that scatter
-    slightly below their maximum, e.g. 51.05-51.25 m), or ``PARAM robot_front_laser_max``
-    when present and smaller. If a ``PARAM`` appears several times, the last one wins.
+    The no-return value ``max_range_m`` is the largest reading in the log. Unless given,
+    ``usable_range_m`` is ``(1 - NO_RETURN_MARGIN) * max_range_m`` (sensors report
+    saturated readings that scatter slightly below their maximum, e.g. 51.05-51.25 m), or
+    ``PARAM robot_front_laser_max`` when present and smaller. If a ``PARAM`` appears several
+    times, the last one wins.
 
     Args:
         path: Log file.
@@ -238,14 +238,15 @@ def load_carmen(
     Raises:
         FileNotFoundError: ``path`` does not exist.
         ValueError: ``usable_range_m`` is not a positive number, or ``azimuth_layout`` is
-            not one of :data:`AZIMUTH_LAYOUTS`.
+            not one of ``AZIMUTH_LAYOUTS``.
         DatasetFormatError: Truncated gzip, malformed ``FLASER`` line (wrong token count,
             a value that is not a plain decimal number such as ``1_5`` or ``0x1``, beam count
             differing from earlier scans, NaN, infinite or negative range, non-finite pose or
             timestamp), malformed honoured ``PARAM`` (not a positive decimal; a resolution
             above 360 degrees), a field of view ``resolution * (n_beams - 1)`` above 360
-            degrees, or no ``FLASER`` line at all. The message carries the 1-based line
-            number. Tokens are separated by ASCII whitespace only.
+            degrees (``resolution * n_beams`` for an even count in the sweep layout), or no
+            ``FLASER`` line at all. The message carries the 1-based line number. Tokens are
+            separated by ASCII whitespace only.
     """
     path = Path(path)
     if not isinstance(azimuth_layout, str) or azimuth_layout not in AZIMUTH_LAYOUTS:

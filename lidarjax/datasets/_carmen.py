@@ -175,20 +175,10 @@ AZIMUTH_LAYOUTS = ("spread", "sweep")
 """Values of :func:`load_carmen`'s ``azimuth_layout``."""
 
 
-def _azimuths(n_beams: int, resolution_deg: float | None, layout: str) -> tuple[np.ndarray, float]:
-    """``[n_beams]`` azimuths (rad) and the span in degrees they are laid over (the
-    field of view for ``spread``, ``resolution * (2 m)`` for ``sweep``), unchecked."""
-    if layout == "spread":
-        span = 180.0 if resolution_deg is None else resolution_deg * (n_beams - 1)
-        fov = math.radians(span)
-        az = np.linspace(-fov / 2, fov / 2, n_beams) if n_beams > 1 else np.zeros(1)
-        return az, span
-    # sweep: an odd, centred sweep of 2 m + 1 beams; an even count lacks the last one.
-    m = (n_beams - 1) // 2 if n_beams % 2 else n_beams // 2
-    if m == 0:
-        return np.zeros(1), 0.0
-    step = 180.0 / (2 * m) if resolution_deg is None else resolution_deg
-    return np.radians(step * (np.arange(n_beams) - m)), step * 2 * m
+def _gaps(n_beams: int, layout: str) -> int:
+    """Angular steps the field of view spans: ``n_beams - 1``, or ``n_beams`` for an even
+    count in the sweep layout (a centred sweep of ``n_beams + 1`` beams, the last missing)."""
+    return n_beams if layout == "sweep" and n_beams % 2 == 0 else n_beams - 1
 
 
 def load_carmen(
@@ -321,16 +311,21 @@ def load_carmen(
     odometry = np.ascontiguousarray(data[:, n_beams + 3 : n_beams + 6])
     timestamps_s = np.ascontiguousarray(data[:, n_beams + 6])
 
-    azimuths, span_deg = _azimuths(n_beams, resolution_deg, azimuth_layout)
-    if resolution_deg is not None and not (math.isfinite(span_deg) and span_deg <= _MAX_FOV_DEG):
-        gaps = "n_beams - 1" if azimuth_layout == "spread" or n_beams % 2 else "n_beams"
+    gaps = _gaps(n_beams, azimuth_layout)
+    fov_deg = 180.0 if resolution_deg is None else resolution_deg * gaps
+    if not (math.isfinite(fov_deg) and fov_deg <= _MAX_FOV_DEG):
         raise DatasetFormatError(
             path,
             f"PARAM {_RESOLUTION_PARAM} {resolution_deg:g} deg with {n_beams} beams gives "
-            f"a field of view of {span_deg:g} deg",
+            f"a field of view of {fov_deg:g} deg",
             line=resolution_line,
-            expected=f"resolution * ({gaps}) <= {_MAX_FOV_DEG:g} deg",
+            expected=f"resolution * ({'n_beams' if gaps == n_beams else 'n_beams - 1'}) "
+            f"<= {_MAX_FOV_DEG:g} deg",
         )
+    fov = math.radians(fov_deg)
+    # Centred on the heading; a missing last beam ends the layout one step short.
+    last = fov / 2 - (fov / gaps if gaps == n_beams else 0.0)
+    azimuths = np.linspace(-fov / 2, last, n_beams) if n_beams > 1 else np.zeros(1)
 
     max_range = float(ranges_m.max())
     if usable_range_m is not None:

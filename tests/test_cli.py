@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import inspect
 import json
 import re
 from pathlib import Path
@@ -190,6 +191,7 @@ def test_map_from_bag_matches_the_log(tmp_path):
     assert main(["map", "intel", "--scans", "0:20", "-o", str(tmp_path / "log"), *args]) == 0
     a = load_grid_map(tmp_path / "bag" / "map.npz")
     b = load_grid_map(tmp_path / "log" / "map.npz")
+    assert a.meta["azimuth_layout"] is None and b.meta["azimuth_layout"] == "spread"
     assert a.shape == b.shape
     np.testing.assert_allclose(a.origin, b.origin, atol=1e-4)
     assert a.arrays["hits"].sum() == b.arrays["hits"].sum()  # same HIT rays (float32 ranges)
@@ -400,3 +402,200 @@ def test_experiment_list_and_unknown(capsys):
     assert "_common" not in out
     code, _, err = run("experiment", "no_such_experiment", capsys=capsys)
     assert code == 2 and "argument NAME" in err and "demo" in err
+
+
+# ---------------------------------------------------------------- --azimuth-layout
+LOG_COMMANDS = ("map", "localize", "polylines")  # the subcommands that read a laser log
+
+
+def _write_carmen(path: Path, n_scans: int = 6, n_beams: int = 36) -> Path:
+    """A small CARMEN log: a robot driving through a 6 m x 6 m room, ``n_beams`` (even)
+    beams traced at the sweep layout's 5-degree steps (no PARAM line), odometry offset
+    from the corrected poses; one 20 m no-return in the first scan."""
+    az = np.radians(-90 + 180 / n_beams * np.arange(n_beams))
+    lines = ["# synthetic log for tests/test_cli.py"]
+    for i in range(n_scans):
+        x, y, th = -0.5 + 0.2 * i, 0.1 * i, 0.05 * i
+        d = np.stack([np.cos(th + az), np.sin(th + az)], -1)
+        wall = np.where(d > 0, 3.0, -3.0) - np.array([x, y])  # the walls ahead, per axis
+        with np.errstate(divide="ignore"):
+            r = np.where(d != 0, wall / d, np.inf).min(axis=1)
+        if i == 0:
+            r[-1] = 20.0
+        pose = [x, y, th, x + 1.0, y - 2.0, th + 0.1]
+        nums = " ".join(f"{v:.6f}" for v in [*r, *pose])
+        lines.append(f"FLASER {n_beams} {nums} {100 + 0.1 * i:.3f} host {100 + 0.1 * i:.3f}")
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+@pytest.fixture(scope="module")
+def small_log(tmp_path_factory) -> Path:
+    return _write_carmen(tmp_path_factory.mktemp("carmen") / "room.log")
+
+
+@pytest.fixture(scope="module")
+def small_maps(small_log, tmp_path_factory) -> dict[str, Path]:
+    """``lidarjax map`` of the small log without the option and with each layout."""
+    out = tmp_path_factory.mktemp("layout-maps")
+    maps = {}
+    for name, extra in (("default", []), ("spread", ["--azimuth-layout", "spread"]),
+                        ("sweep", ["--azimuth-layout", "sweep"])):  # fmt: skip
+        argv = ["map", str(small_log), "-o", str(out / name), "--resolution", "0.1"]
+        assert main([*argv, "--no-progress", *extra]) == 0, name
+        maps[name] = out / name / "map.npz"
+    return maps
+
+
+def _option(command: str) -> object:
+    sub = next(a for a in build_parser()._actions if a.dest == "command")
+    return next(a for a in sub.choices[command]._actions if a.dest == "azimuth_layout")
+
+
+@pytest.mark.parametrize("command", LOG_COMMANDS)
+def test_azimuth_layout_option(command, capsys):
+    """Optional, default None, choices = the library's layouts; the help says both."""
+    from lidarjax.cli._inputs import DEFAULT_AZIMUTH_LAYOUT
+    from lidarjax.datasets import AZIMUTH_LAYOUTS
+
+    action = _option(command)
+    assert action.option_strings == ["--azimuth-layout"] and not action.required
+    assert action.default is None and tuple(action.choices) == AZIMUTH_LAYOUTS
+    # None reads the log as load_carmen does by default
+    default = inspect.signature(load_carmen).parameters["azimuth_layout"].default
+    assert default == DEFAULT_AZIMUTH_LAYOUT == "spread"
+    code, out, _ = run(command, "--help", capsys=capsys)
+    assert code == 0 and "--azimuth-layout {spread,sweep}" in out
+    text = " ".join(out.split("--azimuth-layout {spread,sweep}")[2].split())
+    assert "spread = evenly from -fov/2 to +fov/2" in text and "sweep = the scanner's" in text
+    assert "-90 ... +89 deg for 180 beams" in text
+
+
+def test_load_log_azimuth_layout(small_log):
+    """Both load_carmen calls of load_log (registry name, file) get the layout."""
+    from lidarjax.cli._inputs import load_log
+
+    for value, path in (("intel", fetch("intel")), (str(small_log), small_log)):
+        for layout in (None, "spread", "sweep"):
+            loaded = load_log(value, azimuth_layout=layout)
+            want = load_carmen(path, azimuth_layout=layout or "spread").azimuths_rad
+            np.testing.assert_array_equal(loaded.log.azimuths_rad, want)
+            assert loaded.azimuth_layout == (layout or "spread")
+    with pytest.raises(CliInputError, match="argument --azimuth-layout"):
+        load_log(str(small_log), azimuth_layout="diagonal")
+
+
+def test_map_azimuth_layout(small_log, small_maps):
+    """The map's statistics are those of the rays at the chosen layout's azimuths, and
+    map.npz records the layout ("spread" without the option)."""
+    from lidarjax.raytrace import GridSpec
+
+    hits = {}
+    for name, layout in (("default", "spread"), ("spread", "spread"), ("sweep", "sweep")):
+        gm = load_grid_map(small_maps[name])
+        assert gm.meta["azimuth_layout"] == layout, name
+        log = load_carmen(small_log, azimuth_layout=layout)
+        p = log.poses
+        rays = from_scan(
+            jaxlie.SE2.from_xy_theta(p[:, 0], p[:, 1], p[:, 2]),
+            log.azimuths_rad,
+            log.ranges_m,
+            gm.meta["r_min_m"],
+            gm.meta["r_max_m"],
+        )
+        stats = accumulate(GridSpec(gm.origin, gm.resolution, gm.shape), rays)
+        np.testing.assert_array_equal(gm.arrays["hits"], np.asarray(stats.hits), err_msg=name)
+        np.testing.assert_array_equal(gm.arrays["misses"], np.asarray(stats.misses))
+        hits[name] = gm.arrays["hits"]
+    np.testing.assert_array_equal(hits["default"], hits["spread"])
+    assert hits["sweep"].shape != hits["spread"].shape or np.any(hits["sweep"] != hits["spread"])
+
+
+def test_localize_azimuth_layout(small_log, small_maps, tmp_path, monkeypatch, capsys):
+    """The filter's scan model gets the chosen layout's azimuths; errors.json records the
+    layout; a map built with the other layout is pointed out."""
+    import lidarjax.localization as loc
+
+    seen = []
+    real = loc.ScanModel
+
+    def spy(*args, **kwargs):
+        model = real(*args, **kwargs)
+        seen.append(np.asarray(model.azimuths))
+        return model
+
+    monkeypatch.setattr(loc, "ScanModel", spy)
+    common = ["--particles", "16", "--beams", "36", "--init-std", "0.05,0.05,0.02"]
+    for name, layout, extra in (("default", "spread", []),
+                                ("sweep", "sweep", ["--azimuth-layout", "sweep"])):  # fmt: skip
+        out = tmp_path / name
+        code, text, _ = run("localize", small_maps["sweep"], small_log, "-o", out,
+                            "--no-progress", *common, *extra, capsys=capsys)  # fmt: skip
+        assert code == 0, name
+        want = load_carmen(small_log, azimuth_layout=layout).azimuths_rad
+        np.testing.assert_allclose(seen[-1], want, rtol=0, atol=1e-12, err_msg=name)
+        assert json.loads((out / "errors.json").read_text())["azimuth_layout"] == layout
+        mismatch = "MAP was built with the sweep azimuth layout, LOG is read with the spread"
+        assert (mismatch in text) == (layout == "spread"), text
+    assert len(seen) == 2
+
+
+def _svg_points(path: Path) -> np.ndarray:
+    """The scan points of polylines.svg in metres (50 px per m, y up)."""
+    import xml.etree.ElementTree as ET
+
+    ns = "{http://www.w3.org/2000/svg}"
+    circles = ET.parse(path).getroot().iter(f"{ns}circle")
+    return np.array([[float(c.get("cx")) / 50, -float(c.get("cy")) / 50] for c in circles])
+
+
+def test_polylines_azimuth_layout(small_log, tmp_path):
+    """The scan points drawn in polylines.svg lie at the chosen layout's azimuths, and
+    polylines.json records the layout."""
+    for name, layout, extra in (("default", "spread", []),
+                                ("sweep", "sweep", ["--azimuth-layout", "sweep"])):  # fmt: skip
+        out = tmp_path / name
+        argv = ["polylines", str(small_log), "-o", str(out), "--scan", "2", "--J", "8"]
+        assert main([*argv, *extra]) == 0, name
+        log = load_carmen(small_log, azimuth_layout=layout)
+        r, az = log.ranges_m[2], log.azimuths_rad
+        keep = r < log.usable_range_m
+        want = (r[:, None] * np.stack([np.cos(az), np.sin(az)], -1))[keep]
+        got = _svg_points(out / "polylines.svg")
+        assert got.shape == want.shape == (36, 2)
+        np.testing.assert_allclose(got, want, atol=1e-5, err_msg=name)
+        assert json.loads((out / "polylines.json").read_text())["azimuth_layout"] == layout
+
+
+@pytest.mark.parametrize("command", LOG_COMMANDS)
+def test_azimuth_layout_bad_value(command, small_log, tmp_path, capsys):
+    before = ["map.npz"] if command == "localize" else []
+    code, _, err = run(command, *before, small_log, "-o", tmp_path / "o",
+                       "--azimuth-layout", "diagonal", capsys=capsys)  # fmt: skip
+    assert code == 2
+    assert "argument --azimuth-layout: invalid choice: 'diagonal'" in err
+    assert "spread" in err and "sweep" in err
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.fixture(scope="module")
+def small_bag(small_log, tmp_path_factory) -> Path:
+    log = load_carmen(small_log)
+    return write_bag_laser_scans(tmp_path_factory.mktemp("bag") / "room.bag", log)
+
+
+def test_azimuth_layout_rejected_for_a_bag(small_bag, small_maps, tmp_path, capsys):
+    """A bag's scans carry their own angles: the option is an input error for a bag, even
+    with the default value, not ignored."""
+    from lidarjax.cli._inputs import load_log
+
+    loaded = load_log(str(small_bag))  # the bag itself reads fine
+    assert loaded.kind == "bag" and loaded.azimuth_layout is None
+    for command in LOG_COMMANDS:
+        before = [small_maps["default"]] if command == "localize" else []
+        for layout in ("spread", "sweep"):
+            code, _, err = run(command, *before, small_bag, "-o", tmp_path / command,
+                               "--azimuth-layout", layout, capsys=capsys)  # fmt: skip
+            assert code == 2, (command, layout)
+            assert err.count("\n") == 1 and "argument --azimuth-layout" in err
+            assert "ROS bag" in err and "angle_min" in err

@@ -85,7 +85,7 @@ def cmd_polylines(args) -> int:
 
     if args.J < 2:
         raise CliInputError("--J", f"must be >= 2 (one segment), got {args.J}")
-    loaded = load_log(args.log, topic=args.topic)
+    loaded = load_log(args.log, topic=args.topic, azimuth_layout=args.azimuth_layout)
     log = loaded.log
     s = int(parse_scans(str(args.scan), log.n_scans, "--scan")[0])
     out = out_dir(args.out)
@@ -116,6 +116,7 @@ def cmd_polylines(args) -> int:
     n_vertices = sum(len(p) for p in polylines)
     summary = {
         "source": loaded.source,
+        "azimuth_layout": loaded.azimuth_layout,  # None for a bag (its own angles)
         "scan": s,
         "method": name,
         "J": n_vertices,

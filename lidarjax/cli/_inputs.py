@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 __all__ = [
+    "AZIMUTH_LAYOUTS",
     "BAG_SUFFIXES",
     "CliInputError",
     "LoadedLog",
@@ -26,6 +27,12 @@ BAG_SUFFIXES = (".bag", ".db3", ".mcap")
 """File suffixes read as ROS bags (a folder is read as a ROS 2 bag)."""
 
 CARMEN_SUFFIXES = (".log", ".gz", ".clf")
+
+AZIMUTH_LAYOUTS = ("spread", "sweep")
+"""Values of ``--azimuth-layout``: ``lidarjax.datasets.AZIMUTH_LAYOUTS``, spelled out here
+so that building the parser does not import JAX (``lidarjax.datasets`` does)."""
+DEFAULT_AZIMUTH_LAYOUT = "spread"
+"""The layout of a CARMEN log read without ``--azimuth-layout``: ``load_carmen``'s default."""
 
 
 class CliInputError(Exception):
@@ -123,6 +130,8 @@ class LoadedLog:
         has_ground_truth: whether ``log.poses`` are ground truth (the corrected poses of a
             CARMEN log, or the ``map`` frame tf poses of a bag) rather than a stand-in.
         note: what was substituted, if anything (printed by the commands).
+        azimuth_layout: the ``azimuth_layout`` a CARMEN log was read with (``"spread"`` or
+            ``"sweep"``); ``None`` for a bag, whose scans carry their own angles.
     """
 
     log: object
@@ -130,6 +139,7 @@ class LoadedLog:
     kind: str
     has_ground_truth: bool
     note: str | None = None
+    azimuth_layout: str | None = None
 
 
 def _registry_name(value: str) -> str | None:
@@ -149,10 +159,22 @@ def _format_error(argument: str, exc: Exception) -> CliInputError:
     return CliInputError(argument, msg)
 
 
-def load_log(value: str, *, topic: str | None = None, argument: str = "LOG") -> LoadedLog:
+def load_log(
+    value: str,
+    *,
+    topic: str | None = None,
+    azimuth_layout: str | None = None,
+    argument: str = "LOG",
+) -> LoadedLog:
     """Load a laser log: a registry name (``intel``, ``carmen/intel``), a CARMEN
     ``.log``/``.log.gz`` file, or a ROS bag (``.bag``, ``.db3``, ``.mcap`` or a ROS 2 bag
-    folder; ``topic`` selects the LaserScan topic)."""
+    folder; ``topic`` selects the LaserScan topic).
+
+    ``azimuth_layout`` is :func:`~lidarjax.datasets.load_carmen`'s (``"spread"`` or
+    ``"sweep"``; ``None``: its default, ``"spread"``). A bag's scans carry their own angles,
+    so giving it for a bag is an error naming ``--azimuth-layout``, like ``topic`` for a
+    CARMEN log.
+    """
     from ..datasets import (
         DataChecksumError,
         DataNotFoundError,
@@ -161,6 +183,11 @@ def load_log(value: str, *, topic: str | None = None, argument: str = "LOG") -> 
         load_carmen,
     )
 
+    if azimuth_layout is not None and azimuth_layout not in AZIMUTH_LAYOUTS:
+        choices = ", ".join(AZIMUTH_LAYOUTS)
+        raise CliInputError("--azimuth-layout", f"expected {choices}, got {azimuth_layout!r}")
+    # None: load_carmen's own default, passed on explicitly and recorded as used
+    layout = DEFAULT_AZIMUTH_LAYOUT if azimuth_layout is None else azimuth_layout
     name = _registry_name(value)
     path = Path(value).expanduser()
     if name is not None and not path.exists():
@@ -169,10 +196,10 @@ def load_log(value: str, *, topic: str | None = None, argument: str = "LOG") -> 
         if REGISTRY[name].metadata.get("format") != "carmen":
             raise CliInputError(argument, f"{value!r} is a registered file but not a laser log")
         try:
-            log = load_carmen(fetch(name))
+            log = load_carmen(fetch(name), azimuth_layout=layout)
         except (DataNotFoundError, DataChecksumError, DatasetFormatError) as e:
             raise _format_error(argument, e) from None
-        return LoadedLog(log, value, "registry", True)
+        return LoadedLog(log, value, "registry", True, azimuth_layout=layout)
     if not path.exists():
         raise CliInputError(
             argument,
@@ -182,6 +209,12 @@ def load_log(value: str, *, topic: str | None = None, argument: str = "LOG") -> 
     is_bag = path.is_dir() or path.suffix.lower() in BAG_SUFFIXES
     if topic is not None and not is_bag:
         raise CliInputError("--topic", "only ROS bags have topics; LOG is a CARMEN log")
+    if azimuth_layout is not None and is_bag:
+        raise CliInputError(
+            "--azimuth-layout",
+            "only CARMEN logs have an azimuth layout; LOG is a ROS bag, whose scans carry "
+            "their own angle_min and angle_increment",
+        )
     if is_bag:
         try:
             from ..datasets import read_bag_laser_scans
@@ -205,7 +238,7 @@ def load_log(value: str, *, topic: str | None = None, argument: str = "LOG") -> 
             return LoadedLog(log, value, "bag", False, note)
         return LoadedLog(log, value, "bag", False, "some scans have no map -> laser tf pose")
     try:
-        log = load_carmen(path)
+        log = load_carmen(path, azimuth_layout=layout)
     except (DatasetFormatError, OSError, EOFError, ValueError) as e:
         raise _format_error(argument, e) from None
-    return LoadedLog(log, value, "carmen", True)
+    return LoadedLog(log, value, "carmen", True, azimuth_layout=layout)

@@ -74,10 +74,16 @@ def cmd_localize(args) -> int:
     if np.any(std < 0):
         raise CliInputError("--init-std", f"must be >= 0, got {args.init_std}")
     model_name, model, stats, meta = load_map(args.map)
-    loaded = load_log(args.log, topic=args.topic)
+    loaded = load_log(args.log, topic=args.topic, azimuth_layout=args.azimuth_layout)
     log = loaded.log
     if loaded.note:
         print(f"note: {loaded.note}")
+    map_layout = meta.get("azimuth_layout")
+    if map_layout and loaded.azimuth_layout and map_layout != loaded.azimuth_layout:
+        print(
+            f"note: MAP was built with the {map_layout} azimuth layout, LOG is read with the "
+            f"{loaded.azimuth_layout} layout (--azimuth-layout)"
+        )
     idx = parse_scans(args.scans, log.n_scans)
     if idx.size < 2:
         raise CliInputError("--scans", "select at least 2 scans (one filter step)")
@@ -157,6 +163,7 @@ def cmd_localize(args) -> int:
             "steps": int(n_steps),
             "degenerate_steps": degenerate,
             "time_unit": unit,
+            "azimuth_layout": loaded.azimuth_layout,
             "pos_err_m": pos.tolist(),
             "head_err_deg": np.degrees(head).tolist(),
         }

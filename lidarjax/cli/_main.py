@@ -14,7 +14,7 @@ import textwrap
 from collections.abc import Sequence
 
 from ..distributed import HOST_DEVICES_ENV
-from ._inputs import CliInputError
+from ._inputs import AZIMUTH_LAYOUTS, CliInputError
 
 __all__ = ["build_parser", "main"]
 
@@ -52,6 +52,20 @@ def _sub(subparsers, name: str, summary: str, description: str, example: str, ha
     )
     p.set_defaults(handler=handler)
     return p
+
+
+def _azimuth_layout_option(p: argparse.ArgumentParser) -> None:
+    """``--azimuth-layout``: ``load_carmen``'s ``azimuth_layout`` for a CARMEN LOG."""
+    p.add_argument(
+        "--azimuth-layout",
+        choices=AZIMUTH_LAYOUTS,
+        default=None,
+        help="beam azimuths of a CARMEN log: spread = evenly from -fov/2 to +fov/2 (the data "
+        "README's layout); sweep = the scanner's own 1-degree (or declared resolution) steps "
+        "from -90 deg, an even beam count missing its last beam (-90 ... +89 deg for 180 "
+        "beams), how the shared logs' corrected poses were made (default: spread; not for "
+        "ROS bags, whose scans carry their angles)",
+    )
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -170,6 +184,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--resolution", type=float, default=0.05, metavar="M", help="cell size (m)")
     p.add_argument("--scans", metavar="START:STOP[:STEP]", help="scans to use (default: all)")
     p.add_argument("--topic", help="LaserScan topic of a ROS bag (default: the only one)")
+    _azimuth_layout_option(p)
     p.add_argument(
         "--margin", type=float, default=1.0, metavar="M", help="grid margin around the data (m)"
     )
@@ -226,6 +241,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--beams", type=int, default=60, metavar="B", help="beams per scan used")
     p.add_argument("--seed", type=int, default=0, help="PRNG seed")
     p.add_argument("--topic", help="LaserScan topic of a ROS bag (default: the only one)")
+    _azimuth_layout_option(p)
     p.add_argument("--chunk", type=int, default=32, metavar="STEPS", help="filter steps per chunk")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
@@ -249,6 +265,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--J", type=int, default=30, dest="J", help="maximum number of vertices")
     p.add_argument("--plus", action="store_true", help="refine with PLE+")
     p.add_argument("--topic", help="LaserScan topic of a ROS bag (default: the only one)")
+    _azimuth_layout_option(p)
 
     # ---------------------------------------------------------------- planes
     p = _sub(

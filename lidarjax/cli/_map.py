@@ -206,7 +206,7 @@ def cmd_map(args) -> int:
     if args.chunk < 1:
         raise CliInputError("--chunk", f"must be >= 1, got {args.chunk}")
     sigma = _positive(args.sigma, "--sigma")
-    loaded = load_log(args.log, topic=args.topic)
+    loaded = load_log(args.log, topic=args.topic, azimuth_layout=args.azimuth_layout)
     log = loaded.log
     if loaded.note:
         print(f"note: {loaded.note}")
@@ -231,6 +231,7 @@ def cmd_map(args) -> int:
         "source": loaded.source,
         "source_kind": loaded.kind,
         "topic": args.topic,
+        "azimuth_layout": loaded.azimuth_layout,  # None for a bag (its own angles)
         "scans": args.scans or ":",
         "n_scans_used": int(len(idx)),
         "r_min_m": R_MIN_M,

@@ -517,6 +517,55 @@ def test_find_loops_does_not_match_known_pairs_again(office_revisit_scans, offic
     np.testing.assert_allclose(again.measurements, loops.measurements[rest], atol=1e-9)
 
 
+def test_loop_threshold_follows_the_matching_model():
+    # the mean log-likelihood test: each model's default (its values are on its own
+    # scale), unless LoopConfig gives one
+    import types
+
+    from lidarjax.slam import MIN_MEAN_LOG_LIKELIHOOD
+
+    az = np.zeros(100)
+    match = types.SimpleNamespace(
+        n_used=100, mean_log_likelihood=-1.0, min_translation_information=1e5, plausible=True
+    )
+    endpoint, decay = FrontEndConfig(model="endpoint"), FrontEndConfig()
+    assert MIN_MEAN_LOG_LIKELIHOOD["decay_rate"] > -1.0 > MIN_MEAN_LOG_LIKELIHOOD["endpoint"]
+    default = LoopConfig()
+    assert loops_module._min_mean_log_likelihood(default, decay) == 0.5
+    assert loops_module._min_mean_log_likelihood(default, endpoint) == -1.5
+    assert loops_module._good(match, az, default, -1.5)
+    assert not loops_module._good(match, az, default, 0.5)
+    given = LoopConfig(min_mean_log_likelihood=-0.5)
+    for fcfg in (decay, endpoint):
+        assert loops_module._min_mean_log_likelihood(given, fcfg) == -0.5
+    # every FrontEndConfig model has a default, and the defaults are read-only
+    assert set(MIN_MEAN_LOG_LIKELIHOOD) == {"decay_rate", "endpoint"}
+    with pytest.raises(TypeError):
+        MIN_MEAN_LOG_LIKELIHOOD["endpoint"] = 0.5
+    with pytest.raises(ValueError, match="model"):
+        FrontEndConfig(model="likelihood_field")
+
+
+@pytest.mark.slow  # ~40 s: the search twice with the end-point model
+def test_find_loops_closes_loops_with_the_endpoint_model(office_revisit_scans):
+    # the end-point model's log-likelihoods lie below the decay-rate threshold (0.5 nats
+    # per ray): with it, the search accepted no loop; with the model's own, it closes the
+    # revisit, accurately
+    truth, ranges = office_revisit_scans
+    est = _office_revisit_estimate(truth)
+    fcfg = FrontEndConfig(model="endpoint")
+    cfg = LoopConfig(every=5, wide_search_xy_m=0.0)
+    loops = find_loops(ranges, AZ, est, cfg, fcfg)
+    j, i = loops.edges.T
+    assert ((i >= 100) & (j < 35)).sum() >= 1  # measured: 2 loops, 1 on the revisit
+    xy, yaw = _loop_errors(truth, loops)
+    assert xy.max() < 0.07 and yaw.max() < 0.012  # measured: <= 0.048 m, 0.003 rad
+    strict = find_loops(
+        ranges, AZ, est, dataclasses.replace(cfg, min_mean_log_likelihood=0.5), fcfg
+    )
+    assert len(strict.edges) == 0 and strict.n_tried == loops.n_tried
+
+
 @pytest.fixture(scope="module")
 def office_far_revisit(office_revisit_scans):
     """The revisit (after a lap, 44 m) with its estimate 2-3 m and 0.15 rad off, a drift
@@ -867,6 +916,10 @@ def test_back_ends_reject_bad_inputs(change, name, optimize):
         ({"wide_drift_per_m": 0.0}, "wide_drift_per_m"),
         ({"retry_xy_m": -0.1}, "retry_xy_m"),
         ({"retry_yaw_rad": float("nan")}, "retry_yaw_rad"),
+        ({"min_mean_log_likelihood": float("nan")}, "min_mean_log_likelihood"),
+        ({"min_mean_log_likelihood": float("-inf")}, "min_mean_log_likelihood"),
+        ({"min_mean_log_likelihood": True}, "min_mean_log_likelihood"),
+        ({"min_mean_log_likelihood": "0.5"}, "min_mean_log_likelihood"),
     ],
 )
 def test_loop_config_rejects_bad_values(kwargs, name):

@@ -16,6 +16,7 @@ from ._front_end import GridMap as GridMap
 from ._front_end import MatchResult as MatchResult
 from ._front_end import match_scan as match_scan
 from ._front_end import run_front_end as run_front_end
+from ._loops import MIN_MEAN_LOG_LIKELIHOOD as MIN_MEAN_LOG_LIKELIHOOD
 from ._loops import LoopConfig as LoopConfig
 from ._loops import Loops as Loops
 from ._loops import find_loops as find_loops

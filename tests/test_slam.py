@@ -522,7 +522,7 @@ def test_loop_threshold_follows_the_matching_model():
     # scale), unless LoopConfig gives one
     import types
 
-    from lidarjax.slam import MIN_MEAN_LOG_LIKELIHOOD
+    from lidarjax.slam import MATCHING_MODELS, MIN_MEAN_LOG_LIKELIHOOD
 
     az = np.zeros(100)
     match = types.SimpleNamespace(
@@ -539,7 +539,7 @@ def test_loop_threshold_follows_the_matching_model():
     for fcfg in (decay, endpoint):
         assert loops_module._min_mean_log_likelihood(given, fcfg) == -0.5
     # every FrontEndConfig model has a default, and the defaults are read-only
-    assert set(MIN_MEAN_LOG_LIKELIHOOD) == {"decay_rate", "endpoint"}
+    assert set(MIN_MEAN_LOG_LIKELIHOOD) == set(MATCHING_MODELS) == {"decay_rate", "endpoint"}
     with pytest.raises(TypeError):
         MIN_MEAN_LOG_LIKELIHOOD["endpoint"] = 0.5
     with pytest.raises(ValueError, match="model"):

@@ -10,6 +10,7 @@ from ._back_end import optimize_joint as optimize_joint
 from ._back_end import trajectory_log_likelihood as trajectory_log_likelihood
 from ._baselines import IcpSlamResult as IcpSlamResult
 from ._baselines import icp_pose_graph_slam as icp_pose_graph_slam
+from ._front_end import MATCHING_MODELS as MATCHING_MODELS
 from ._front_end import FrontEndConfig as FrontEndConfig
 from ._front_end import FrontEndResult as FrontEndResult
 from ._front_end import GridMap as GridMap

@@ -43,10 +43,15 @@ __all__ = [
     "FrontEndConfig",
     "FrontEndResult",
     "GridMap",
+    "MATCHING_MODELS",
     "MatchResult",
     "match_scan",
     "run_front_end",
 ]
+
+
+#: the scan-matching models of :class:`FrontEndConfig` (``model``)
+MATCHING_MODELS = ("decay_rate", "endpoint")
 
 
 def _wrap(a):
@@ -234,8 +239,8 @@ class FrontEndConfig:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
                 raise ValueError(f"{name} must be finite and >= 0, got {v!r}")
-        if self.model not in ("decay_rate", "endpoint"):
-            raise ValueError(f"model must be 'decay_rate' or 'endpoint', got {self.model!r}")
+        if self.model not in MATCHING_MODELS:
+            raise ValueError(f"model must be one of {MATCHING_MODELS}, got {self.model!r}")
         for name in ("n_nodes", "max_steps"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v <= 0:

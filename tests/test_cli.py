@@ -39,6 +39,7 @@ COMMANDS = (
     "fetch",
     "map",
     "localize",
+    "slam",
     "polylines",
     "planes",
     "poles",
@@ -405,7 +406,7 @@ def test_experiment_list_and_unknown(capsys):
 
 
 # ---------------------------------------------------------------- --azimuth-layout
-LOG_COMMANDS = ("map", "localize", "polylines")  # the subcommands that read a laser log
+LOG_COMMANDS = ("map", "localize", "slam", "polylines")  # the subcommands that read a laser log
 
 
 def _write_carmen(path: Path, n_scans: int = 6, n_beams: int = 36) -> Path:

@@ -78,8 +78,9 @@ def build_parser() -> argparse.ArgumentParser:
             """
             lidarjax: probabilistic, differentiable lidar mapping and localization in JAX.
             Build maps from laser logs and ROS bags, localize in them with a particle
-            filter, extract polylines, planes and poles, fetch the registered data sets and
-            run the packaged Hydra experiments. `lidarjax COMMAND --help` explains each.
+            filter, estimate trajectory and map together (decay-rate SLAM), extract
+            polylines, planes and poles, fetch the registered data sets and run the
+            packaged Hydra experiments. `lidarjax COMMAND --help` explains each.
             """
         ),
         epilog=_fmt(
@@ -244,6 +245,88 @@ def build_parser() -> argparse.ArgumentParser:
     _azimuth_layout_option(p)
     p.add_argument("--chunk", type=int, default=32, metavar="STEPS", help="filter steps per chunk")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+    # ---------------------------------------------------------------- slam
+    p = _sub(
+        sub,
+        "slam",
+        "decay-rate SLAM: trajectory and map from a laser log's scans and odometry",
+        """
+        Estimate the trajectory and the map of LOG from its scans and raw odometry with
+        lidarjax.slam.run_slam: the online front end matches every scan against the
+        decay-rate map of the scans before it (coarse to fine, from the odometry's
+        prediction), loop closures are searched against earlier visits, and a pose graph
+        (and optionally a joint or alternating back end over all poses and the map)
+        corrects the drift. Readings at or beyond --range-cap (default 20 m, or the
+        sensor's usable range where shorter) are no-returns. The shared CARMEN logs'
+        odometry equals their corrected poses; --drift SEED simulates a drifting wheel
+        odometry from them instead (the settings of configs/slam.yaml), as the SLAM
+        experiment does. Writes into OUT: trajectory.tum (the estimate), front_end.tum,
+        odometry.tum (TUM, time stamps in s, or scan indices where the log's are not
+        increasing), loops.csv (loop closures and revisits: scan pairs and relative poses),
+        map.npz (the decay-rate map at the estimate; input of `lidarjax localize`),
+        map.yaml + map.pgm, slam.png and slam.json, and, where LOG has ground truth,
+        errors.png and the errors (ATE after SE(2) alignment, RPE) in slam.json. The
+        estimate is in the odometry's frame, starting at its first pose.
+        """,
+        "lidarjax slam intel -o out/slam --azimuth-layout sweep --drift 0\n"
+        "  lidarjax slam run.bag -o out/slam-bag --topic /scan",
+        "_slam:cmd_slam",
+    )
+    p.add_argument("log", metavar="LOG", help="registry name, CARMEN log or ROS bag")
+    p.add_argument("-o", "--out", required=True, metavar="OUT", help="output folder")
+    p.add_argument("--scans", metavar="START:STOP[:STEP]", help="scans to use (default: all)")
+    p.add_argument("--topic", help="LaserScan topic of a ROS bag (default: the only one)")
+    _azimuth_layout_option(p)
+    p.add_argument(
+        "--model",
+        choices=("decay-rate", "endpoint"),
+        default="decay-rate",
+        help="scan-matching model of the front end and the loop search (endpoint: the "
+        "likelihood-field baseline)",
+    )
+    p.add_argument(
+        "--back-end",
+        choices=("none", "joint", "alternating"),
+        default="none",
+        help="after the pose graph: none, the joint optimisation of all poses and the map, "
+        "or the alternating scheme (both take minutes on a few hundred scans)",
+    )
+    p.add_argument(
+        "--loop-rounds", type=int, default=2, metavar="N", help="rounds of loop search (>= 1)"
+    )
+    p.add_argument(
+        "--range-cap",
+        type=float,
+        metavar="M",
+        help="readings at or beyond this range are no-returns (default: 20 m, or the "
+        "log's usable range where shorter)",
+    )
+    p.add_argument("--resolution", type=float, default=0.05, metavar="M", help="cell size (m)")
+    p.add_argument(
+        "--odometry-noise",
+        type=float,
+        default=1.0,
+        metavar="K",
+        help="scales the odometry model (the front end's prior on each increment, also the "
+        "weight of the pose graph's odometry factors: 0.02 m + 10 %% of the step, 0.01 "
+        "rad + 0.03 rad/m + 5 %% of the turn, times K); raise it for a noisier odometry",
+    )
+    p.add_argument(
+        "--drift",
+        type=int,
+        metavar="SEED",
+        help="start from a simulated drifting wheel odometry (seed SEED) made from LOG's "
+        "ground-truth poses instead of LOG's odometry",
+    )
+    p.add_argument(
+        "--rpe-delta",
+        type=float,
+        default=1.0,
+        metavar="M",
+        help="path length of the relative pose error (m)",
+    )
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
 
     # ---------------------------------------------------------------- polylines
     p = _sub(

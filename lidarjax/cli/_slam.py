@@ -1,0 +1,312 @@
+"""``lidarjax slam``: decay-rate SLAM (:func:`lidarjax.slam.run_slam`) on a laser log's
+scans and raw odometry. Writes the trajectories (TUM), the loop closures, the map of the
+estimate (``map.npz`` as ``lidarjax map`` writes it, so ``lidarjax localize`` reads it),
+a figure and, where the log has ground truth, the errors against it."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+
+from ._inputs import CliInputError, load_log, out_dir, parse_scans
+from ._localize import _stamps
+from ._map import (
+    R_MIN_M,
+    _occupancy,
+    _positive,
+    _short,
+    build_stats,
+    model_from_stats,
+    save_map,
+    scan_ranges,
+)
+
+__all__ = ["DRIFT", "MATCHING", "cmd_slam"]
+
+MATCHING = ("decay-rate", "endpoint")
+"""``--model``: the scan-matching model (:data:`lidarjax.slam.MATCHING_MODELS`, spelled
+with a hyphen as ``lidarjax map`` spells its models)."""
+BACK_ENDS = ("none", "joint", "alternating")
+DRIFT = {
+    "sigma_trans_rel": 0.05,
+    "sigma_rot_per_m": math.radians(1.0),
+    "heading_bias_per_m": math.radians(0.3),
+    "sigma_rot_per_rad": 0.02,
+}
+"""``--drift``: :func:`lidarjax.sim.wheel_odometry`'s settings, those of
+``configs/slam.yaml`` (5 % of each step's length, 1 deg per m of heading noise, 0.3 deg
+per m of heading bias, 2 % of each turn)."""
+DEFAULT_RANGE_CAP_M = 20.0
+"""The front end's range cap where the log's sensor reaches farther
+(:class:`lidarjax.slam.FrontEndConfig`'s default)."""
+SAME_POSES_M = 1e-6
+ODOMETRY_SIGMAS = (
+    "odometry_sigma_rel",
+    "odometry_sigma_xy_m",
+    "odometry_sigma_yaw_per_m",
+    "odometry_sigma_yaw_rel",
+    "odometry_sigma_yaw_rad",
+)
+"""The :class:`lidarjax.slam.FrontEndConfig` fields ``--odometry-noise`` scales."""
+
+
+def _range_cap(value: float | None, usable: float) -> float:
+    """``--range-cap``: readings at or beyond it are no-returns to the front end. At most
+    the log's usable range: a reading beyond that is already a no-return, and a cap above
+    it would read the sensor's no-return value as a wall."""
+    if value is None:
+        return min(DEFAULT_RANGE_CAP_M, usable)
+    cap = _positive(value, "--range-cap")
+    if cap <= R_MIN_M:
+        raise CliInputError("--range-cap", f"must exceed {R_MIN_M} m, got {cap}")
+    if cap > usable:
+        raise CliInputError(
+            "--range-cap",
+            f"must be at most LOG's usable range, {usable:.3f} m (readings at or beyond it "
+            f"are no-returns), got {cap}",
+        )
+    return cap
+
+
+def _odometry(args, loaded, idx) -> tuple[np.ndarray, str]:
+    """The odometry SLAM starts from, and a description of it."""
+    log = loaded.log
+    if args.drift is not None:
+        if args.drift < 0:
+            raise CliInputError("--drift", f"must be a seed >= 0, got {args.drift}")
+        if not loaded.has_ground_truth:
+            raise CliInputError("--drift", "LOG has no ground-truth poses to simulate it from")
+        from ..sim import wheel_odometry
+
+        gt = np.asarray(log.poses, float)[idx]
+        return wheel_odometry(gt, seed=int(args.drift), **DRIFT), f"simulated (seed {args.drift})"
+    odo = np.asarray(log.odometry, float)[idx]
+    if not np.all(np.isfinite(odo)):
+        bad = int(idx[np.flatnonzero(~np.all(np.isfinite(odo), axis=1))[0]])
+        raise CliInputError("LOG", f"scan {bad} has no odometry pose (SLAM needs one per scan)")
+    if loaded.has_ground_truth:
+        gt = np.asarray(log.poses, float)[idx]
+        if np.max(np.abs(odo - gt)) < SAME_POSES_M:
+            print(
+                "note: LOG's odometry equals its ground-truth poses (a corrected log, as "
+                "the shared CARMEN logs are), so SLAM starts from the answer; --drift SEED "
+                "simulates a drifting wheel odometry from them"
+            )
+    return odo, "the log's"
+
+
+def _write_loops(path, idx, loops, revisits) -> None:
+    """``loops.csv``: one relative-pose factor per row, scan indices of LOG."""
+    rows = ["kind,scan_from,scan_to,dx_m,dy_m,dyaw_rad"]
+    for kind, found in (("loop", loops), ("revisit", revisits)):
+        for (a, b), m in zip(np.asarray(found.edges), np.asarray(found.measurements)):
+            rows.append(f"{kind},{idx[a]},{idx[b]},{m[0]:.6f},{m[1]:.6f},{m[2]:.6f}")
+    path.write_text("\n".join(rows) + "\n")
+
+
+def _errors(poses: dict, gt: np.ndarray, delta_m: float) -> dict:
+    from ..metrics import absolute_trajectory_error, relative_pose_error
+
+    out = {}
+    for name, p in poses.items():
+        a = absolute_trajectory_error(p, gt)
+        entry = {"ate_rmse_m": a.rmse_m, "ate_mean_m": a.mean_m, "ate_max_m": a.max_m}
+        if len(gt) > 1 and np.sum(np.hypot(*np.diff(gt[:, :2], axis=0).T)) >= delta_m:
+            r = relative_pose_error(p, gt, delta_m=delta_m)
+            entry["rpe_trans_rmse_m"] = r.rmse_m
+            entry["rpe_rot_rmse_deg"] = math.degrees(r.rotation_rmse_rad)
+        out[name] = entry
+    return out
+
+
+def cmd_slam(args) -> int:
+    import lidarjax
+
+    lidarjax.enable_compilation_cache()
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import dataclasses
+
+    import jaxlie
+    import matplotlib.pyplot as plt
+
+    from .. import slam
+    from ..datasets import write_map_server, write_tum
+    from ..metrics import absolute_trajectory_error
+    from ..plot import plot_map, plot_trajectory
+
+    if args.loop_rounds < 1:
+        raise CliInputError("--loop-rounds", f"must be >= 1, got {args.loop_rounds}")
+    resolution = _positive(args.resolution, "--resolution")
+    noise = _positive(args.odometry_noise, "--odometry-noise")
+    loaded = load_log(args.log, topic=args.topic, azimuth_layout=args.azimuth_layout)
+    log = loaded.log
+    if loaded.note:
+        print(f"note: {loaded.note}")
+    idx = parse_scans(args.scans, log.n_scans)
+    if idx.size < 2:
+        raise CliInputError("--scans", "select at least 2 scans")
+    usable = float(log.usable_range_m)
+    cap = _range_cap(args.range_cap, usable)
+    odo, odo_source = _odometry(args, loaded, idx)
+    out = out_dir(args.out)
+    az = np.asarray(log.azimuths_rad, float)
+    # non-finite readings (a bag's inf) and readings at or beyond the usable range are
+    # no-returns: clipped to the usable range, at or beyond the cap
+    ranges = np.minimum(scan_ranges(log, usable)[idx], usable)
+    base = slam.FrontEndConfig()
+    front = slam.FrontEndConfig(
+        model=args.model.replace("-", "_"),
+        range_cap_m=cap,
+        window_m=cap + 2.0,
+        resolution_m=resolution,
+        **{k: noise * getattr(base, k) for k in ODOMETRY_SIGMAS},
+    )
+    cfg = slam.SlamConfig(
+        front=front,
+        back=slam.BackEndConfig(resolution_m=resolution, range_cap_m=min(10.0, cap)),
+        back_end=args.back_end,
+        loop_rounds=int(args.loop_rounds),
+    )
+    res = slam.run_slam(ranges, az, odo, cfg, progress=not args.no_progress)
+    est = np.asarray(res.poses, float)
+
+    stamps, unit = _stamps(log, idx)
+    files = []
+    for name, p in (
+        ("trajectory.tum", est),
+        ("front_end.tum", res.front_end_poses),
+        ("odometry.tum", odo),
+    ):
+        p = np.asarray(p, float)
+        write_tum(out / name, stamps, jaxlie.SE2.from_xy_theta(p[:, 0], p[:, 1], p[:, 2]))
+        files.append(name)
+    _write_loops(out / "loops.csv", idx, res.loops, res.revisits)
+    files.append("loops.csv")
+
+    # the map of the estimate, as `lidarjax map` builds one at a log's poses
+    poses_all = np.full((log.n_scans, 3), np.nan)
+    poses_all[idx] = est
+    mapped = dataclasses.replace(loaded, log=dataclasses.replace(log, poses=poses_all))
+    stats, spec, p_out = build_stats(
+        mapped,
+        idx,
+        resolution=resolution,
+        margin=1.0,
+        r_max=usable,
+        chunk=64,
+        progress=not args.no_progress,
+    )
+    model = model_from_stats("decay-rate", stats, p_out=p_out)
+    n_fe = len(idx)
+    seconds = {k: float(v) for k, v in res.seconds.items()}
+    meta = {
+        "source": loaded.source,
+        "source_kind": loaded.kind,
+        "topic": args.topic,
+        "azimuth_layout": loaded.azimuth_layout,
+        "scans": args.scans or ":",
+        "n_scans_used": int(n_fe),
+        "r_min_m": R_MIN_M,
+        "r_max_m": usable,
+        "sigma_m": 0.1,
+        "p_out": p_out,
+        "poses": "lidarjax slam",
+        "lidarjax_version": lidarjax.__version__,
+    }
+    save_map(out / "map.npz", "decay-rate", model, stats, meta)
+    write_map_server(
+        out / "map.yaml",
+        _occupancy("decay-rate", model, stats),
+        origin_xy=[_short(v) for v in np.asarray(spec.origin)],
+        resolution=_short(spec.resolution),
+    )
+    files += ["map.npz", "map.yaml", "map.pgm"]
+
+    summary = {
+        "source": loaded.source,
+        "scans": args.scans or ":",
+        "n_scans": int(n_fe),
+        "model": args.model,
+        "back_end": args.back_end,
+        "loop_rounds": int(args.loop_rounds),
+        "odometry_noise": noise,
+        "range_cap_m": cap,
+        "resolution_m": resolution,
+        "azimuth_layout": loaded.azimuth_layout,
+        "odometry": odo_source,
+        "n_loops": int(len(res.loops.edges)),
+        "n_revisits": int(len(res.revisits.edges)),
+        "seconds": seconds,
+        "front_end_scans_per_s": n_fe / max(seconds.get("front_end", 0.0), 1e-9),
+        "time_unit": unit,
+    }
+
+    fig, ax = plt.subplots(figsize=(8, 8), layout="constrained")
+    plot_map(model, observed=stats, ax=ax, title=f"lidarjax slam: {loaded.source}")
+    plot_trajectory(odo, ax=ax, color="tab:gray", lw=0.6, ls="--", label="odometry")
+    gt = None
+    if loaded.has_ground_truth:
+        gt = np.asarray(log.poses, float)[idx]
+        a = absolute_trajectory_error(est, gt)
+        # the ground truth in the estimate's frame (the inverse of the alignment)
+        c, s = math.cos(a.rotation_rad), math.sin(a.rotation_rad)
+        rot = np.array([[c, s], [-s, c]])
+        plot_trajectory(
+            (gt[:, :2] - a.translation_m) @ rot.T,
+            ax=ax,
+            color="tab:green",
+            lw=0.8,
+            label="ground truth (aligned)",
+        )
+    plot_trajectory(est, ax=ax, color="tab:orange", lw=0.9, label="SLAM estimate")
+    fig.savefig(out / "slam.png", dpi=150)
+    plt.close(fig)
+    files.append("slam.png")
+
+    print(
+        f"SLAM ({args.model} matching, back end {args.back_end}) on {n_fe} scans of "
+        f"{loaded.source}: {summary['n_loops']} loop closures, {summary['n_revisits']} "
+        f"revisits; front end {summary['front_end_scans_per_s']:.2f} scans/s"
+    )
+    if gt is not None:
+        errs = _errors(
+            {"odometry": odo, "front_end": res.front_end_poses, "estimate": est},
+            gt,
+            args.rpe_delta,
+        )
+        summary["errors"] = errs
+        summary["rpe_delta_m"] = args.rpe_delta
+        ate = {
+            "front end": absolute_trajectory_error(res.front_end_poses, gt),
+            "estimate": absolute_trajectory_error(est, gt),
+        }
+        fig, axs = plt.subplots(figsize=(8, 3.5), layout="constrained")
+        x = stamps - stamps[0] if unit == "s" else stamps
+        for k, color in (("front end", "tab:blue"), ("estimate", "tab:orange")):
+            axs.plot(x, ate[k].errors_m, color=color, lw=0.8, label=k)
+        axs.set_xlabel("time since the first scan (s)" if unit == "s" else "scan index")
+        axs.set_ylabel("position error after SE(2) alignment (m)")
+        axs.set_title(f"{loaded.source}: ATE {errs['estimate']['ate_rmse_m']:.3f} m")
+        axs.set_ylim(bottom=0)
+        axs.grid(alpha=0.3)
+        axs.legend()
+        fig.savefig(out / "errors.png", dpi=120)
+        plt.close(fig)
+        files.append("errors.png")
+        print(
+            "ATE (RMSE after SE(2) alignment): odometry "
+            f"{errs['odometry']['ate_rmse_m']:.3f} m, front end "
+            f"{errs['front_end']['ate_rmse_m']:.3f} m, estimate "
+            f"{errs['estimate']['ate_rmse_m']:.3f} m"
+        )
+    else:
+        print("no ground truth in LOG: no errors.png, no ATE")
+    (out / "slam.json").write_text(json.dumps(summary, indent=1))
+    files.append("slam.json")
+    for f in files:
+        print(f"  {out / f}")
+    return 0

@@ -73,6 +73,7 @@ def _poses_of_tum(path: Path) -> tuple[np.ndarray, np.ndarray]:
     return t.stamps_s, np.column_stack([t.poses[:, :2], (yaw + np.pi) % (2 * np.pi) - np.pi])
 
 
+@pytest.mark.slow  # the office_slam fixture: ~50 s of SLAM
 def test_slam_outputs(office_slam, office_log):
     """The trajectories, summary and files; the front end corrects the odometry's drift."""
     out, truth, odo = office_slam
@@ -147,6 +148,7 @@ def test_slam_odometry_noise(office_log, office_slam, tmp_path):
     assert json.loads((tmp_path / "slam.json").read_text())["odometry_noise"] == 4.0
 
 
+@pytest.mark.slow  # the office_slam fixture: ~50 s of SLAM
 def test_slam_map_is_the_estimates_decay_rate_map(office_slam, office_log):
     """map.npz holds the ML decay-rate grid of the scans at the written estimate, as an
     independent accumulation of the same rays gives it."""
@@ -170,6 +172,7 @@ def test_slam_map_is_the_estimates_decay_rate_map(office_slam, office_log):
     np.testing.assert_allclose(np.asarray(stats.lengths), np.asarray(ref.lengths), atol=2e-3)
 
 
+@pytest.mark.slow  # the office_slam fixture: ~50 s of SLAM
 def test_slam_map_localizes(office_slam, office_log, tmp_path):
     """``lidarjax localize`` reads the map SLAM wrote and tracks the log in it, along the
     SLAM estimate (the map's frame)."""

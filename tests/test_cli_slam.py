@@ -241,6 +241,7 @@ def test_slam_odometry_choice(office_log, capsys):
         (["--range-cap", "0.05"], "--range-cap", "must exceed"),
         (["--loop-rounds", "0"], "--loop-rounds", ">= 1"),
         (["--resolution", "nan"], "--resolution", "positive"),
+        (["--resolution", "0.005"], "--resolution", "cells wide"),
         (["--odometry-noise", "0"], "--odometry-noise", "positive"),
         (["--odometry-noise", "inf"], "--odometry-noise", "positive"),
         (["--drift", "-2"], "--drift", ">= 0"),

@@ -42,6 +42,8 @@ DEFAULT_RANGE_CAP_M = 20.0
 """The front end's range cap where the log's sensor reaches farther
 (:class:`lidarjax.slam.FrontEndConfig`'s default)."""
 SAME_POSES_M = 1e-6
+MAX_WINDOW_CELLS = 4000**2
+"""Largest map window of the front end (cells; 880 x 880 at the defaults)."""
 ODOMETRY_SIGMAS = (
     "odometry_sigma_rel",
     "odometry_sigma_xy_m",
@@ -151,6 +153,14 @@ def cmd_slam(args) -> int:
         raise CliInputError("--scans", "select at least 2 scans")
     usable = float(log.usable_range_m)
     cap = _range_cap(args.range_cap, usable)
+    side = 2.0 * (cap + 2.0) / resolution  # the front end's map window, in cells
+    if side**2 > MAX_WINDOW_CELLS:
+        raise CliInputError(
+            "--resolution",
+            f"{resolution} m cells make the front end's {2 * (cap + 2):.0f} m map window "
+            f"{side:.0f} cells wide (at most {MAX_WINDOW_CELLS**0.5:.0f}); choose coarser "
+            "cells or a smaller --range-cap",
+        )
     odo, odo_source = _odometry(args, loaded, idx)
     out = out_dir(args.out)
     az = np.asarray(log.azimuths_rad, float)

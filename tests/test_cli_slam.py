@@ -244,6 +244,7 @@ def test_slam_odometry_choice(office_log, capsys):
         (["--resolution", "0.005"], "--resolution", "cells wide"),
         (["--odometry-noise", "0"], "--odometry-noise", "positive"),
         (["--odometry-noise", "inf"], "--odometry-noise", "positive"),
+        (["--rpe-delta", "0"], "--rpe-delta", "positive"),
         (["--drift", "-2"], "--drift", ">= 0"),
         (["--scans", "3:4"], "--scans", "at least 2"),
         (["--model", "icp"], "--model", "invalid choice"),

@@ -144,6 +144,7 @@ def cmd_slam(args) -> int:
         raise CliInputError("--loop-rounds", f"must be >= 1, got {args.loop_rounds}")
     resolution = _positive(args.resolution, "--resolution")
     noise = _positive(args.odometry_noise, "--odometry-noise")
+    rpe_delta = _positive(args.rpe_delta, "--rpe-delta")
     loaded = load_log(args.log, topic=args.topic, azimuth_layout=args.azimuth_layout)
     log = loaded.log
     if loaded.note:
@@ -286,10 +287,10 @@ def cmd_slam(args) -> int:
         errs = _errors(
             {"odometry": odo, "front_end": res.front_end_poses, "estimate": est},
             gt,
-            args.rpe_delta,
+            rpe_delta,
         )
         summary["errors"] = errs
-        summary["rpe_delta_m"] = args.rpe_delta
+        summary["rpe_delta_m"] = rpe_delta
         ate = {
             "front end": absolute_trajectory_error(res.front_end_poses, gt),
             "estimate": absolute_trajectory_error(est, gt),

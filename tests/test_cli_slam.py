@@ -266,3 +266,20 @@ def test_slam_missing_and_corrupt_log(tmp_path, capsys):
     bad.write_text("FLASER 3 1.0 2.0\n")
     code = main(["slam", str(bad), "-o", str(tmp_path / "o")])
     assert code == 2 and "argument LOG" in capsys.readouterr().err
+
+
+def test_slam_choices_follow_the_library():
+    """The parser spells the choices out (it imports no JAX); they are the library's."""
+    from lidarjax import slam
+    from lidarjax.cli import build_parser
+    from lidarjax.cli._slam import BACK_ENDS, MATCHING
+
+    sub = next(a for a in build_parser()._actions if a.dest == "command")
+    actions = {a.dest: a for a in sub.choices["slam"]._actions}
+    assert tuple(actions["model"].choices) == MATCHING
+    assert tuple(m.replace("-", "_") for m in MATCHING) == slam.MATCHING_MODELS
+    assert tuple(actions["back_end"].choices) == BACK_ENDS
+    for back_end in BACK_ENDS:
+        slam.SlamConfig(back_end=back_end)  # each one the library takes
+    with pytest.raises(ValueError, match="back_end"):
+        slam.SlamConfig(back_end="gtsam")

@@ -23,12 +23,13 @@ from ._map import (
     scan_ranges,
 )
 
-__all__ = ["DRIFT", "MATCHING", "cmd_slam"]
+__all__ = ["BACK_ENDS", "DRIFT", "MATCHING", "cmd_slam"]
 
 MATCHING = ("decay-rate", "endpoint")
 """``--model``: the scan-matching model (:data:`lidarjax.slam.MATCHING_MODELS`, spelled
 with a hyphen as ``lidarjax map`` spells its models)."""
 BACK_ENDS = ("none", "joint", "alternating")
+"""``--back-end``: :class:`lidarjax.slam.SlamConfig`'s ``back_end`` (default none)."""
 DRIFT = {
     "sigma_trans_rel": 0.05,
     "sigma_rot_per_m": math.radians(1.0),
@@ -42,6 +43,7 @@ DEFAULT_RANGE_CAP_M = 20.0
 """The front end's range cap where the log's sensor reaches farther
 (:class:`lidarjax.slam.FrontEndConfig`'s default)."""
 SAME_POSES_M = 1e-6
+"""Odometry within this of the ground truth at every scan (m, rad) equals it."""
 MAX_WINDOW_CELLS = 4000**2
 """Largest map window of the front end (cells; 880 x 880 at the defaults)."""
 ODOMETRY_SIGMAS = (

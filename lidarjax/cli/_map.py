@@ -10,7 +10,7 @@ import numpy as np
 
 from ._inputs import CliInputError, LoadedLog, load_log, out_dir, parse_scans, require_file
 
-__all__ = ["MODELS", "cmd_map", "load_map", "model_from_stats", "scan_ranges"]
+__all__ = ["MODELS", "cmd_map", "load_map", "model_from_stats", "scan_ranges", "write_map_files"]
 
 MODELS = ("decay-rate", "reflection", "endpoint")
 MAX_CELLS = 100_000_000
@@ -146,6 +146,20 @@ def save_map(path: Path, model_name: str, model, stats, meta: dict) -> None:
     )
 
 
+def write_map_files(out: Path, model_name: str, model, stats, meta: dict) -> None:
+    """``map.npz`` (:func:`save_map`) and ``map.yaml`` + ``map.pgm`` (ROS map_server) in
+    ``out``."""
+    from ..datasets import write_map_server
+
+    save_map(out / "map.npz", model_name, model, stats, meta)
+    write_map_server(
+        out / "map.yaml",
+        _occupancy(model_name, model, stats),
+        origin_xy=[_short(v) for v in np.asarray(stats.spec.origin)],
+        resolution=_short(stats.spec.resolution),
+    )
+
+
 def load_map(value: str, argument: str = "MAP"):
     """Read a ``map.npz`` written by ``lidarjax map``.
 
@@ -197,7 +211,6 @@ def cmd_map(args) -> int:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from ..datasets import write_map_server
     from ..plot import plot_map, plot_trajectory
 
     resolution = _positive(args.resolution, "--resolution")
@@ -240,14 +253,7 @@ def cmd_map(args) -> int:
         "p_out": p_out,
         "lidarjax_version": lidarjax.__version__,
     }
-    save_map(out / "map.npz", args.model, model, stats, meta)
-    occ = _occupancy(args.model, model, stats)
-    write_map_server(
-        out / "map.yaml",
-        occ,
-        origin_xy=[_short(v) for v in np.asarray(spec.origin)],
-        resolution=_short(spec.resolution),
-    )
+    write_map_files(out, args.model, model, stats, meta)
     ax = plot_map(model, observed=stats, title=f"{args.model} map of {loaded.source}")
     fig = ax.figure
     fig.set_size_inches(8, 8 * spec.shape[1] / max(spec.shape[0], 1) + 0.5)

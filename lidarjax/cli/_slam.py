@@ -12,16 +12,7 @@ import numpy as np
 
 from ._inputs import CliInputError, load_log, out_dir, parse_scans
 from ._localize import _stamps
-from ._map import (
-    R_MIN_M,
-    _occupancy,
-    _positive,
-    _short,
-    build_stats,
-    model_from_stats,
-    save_map,
-    scan_ranges,
-)
+from ._map import R_MIN_M, _positive, build_stats, model_from_stats, scan_ranges, write_map_files
 
 __all__ = ["BACK_ENDS", "DRIFT", "MATCHING", "cmd_slam"]
 
@@ -110,12 +101,14 @@ def _write_loops(path, idx, loops, revisits) -> None:
     path.write_text("\n".join(rows) + "\n")
 
 
-def _errors(poses: dict, gt: np.ndarray, delta_m: float) -> dict:
-    from ..metrics import absolute_trajectory_error, relative_pose_error
+def _errors(poses: dict, ates: dict, gt: np.ndarray, delta_m: float) -> dict:
+    """ATE (``ates``: each trajectory's :func:`~lidarjax.metrics.absolute_trajectory_error`)
+    and RPE per ``delta_m`` of path of each of ``poses`` against ``gt``."""
+    from ..metrics import relative_pose_error
 
     out = {}
     for name, p in poses.items():
-        a = absolute_trajectory_error(p, gt)
+        a = ates[name]
         entry = {"ate_rmse_m": a.rmse_m, "ate_mean_m": a.mean_m, "ate_max_m": a.max_m}
         if len(gt) > 1 and np.sum(np.hypot(*np.diff(gt[:, :2], axis=0).T)) >= delta_m:
             r = relative_pose_error(p, gt, delta_m=delta_m)
@@ -138,7 +131,7 @@ def cmd_slam(args) -> int:
     import matplotlib.pyplot as plt
 
     from .. import slam
-    from ..datasets import write_map_server, write_tum
+    from ..datasets import write_tum
     from ..metrics import absolute_trajectory_error
     from ..plot import plot_map, plot_trajectory
 
@@ -204,7 +197,7 @@ def cmd_slam(args) -> int:
     poses_all = np.full((log.n_scans, 3), np.nan)
     poses_all[idx] = est
     mapped = dataclasses.replace(loaded, log=dataclasses.replace(log, poses=poses_all))
-    stats, spec, p_out = build_stats(
+    stats, _, p_out = build_stats(
         mapped,
         idx,
         resolution=resolution,
@@ -230,13 +223,7 @@ def cmd_slam(args) -> int:
         "poses": "lidarjax slam",
         "lidarjax_version": lidarjax.__version__,
     }
-    save_map(out / "map.npz", "decay-rate", model, stats, meta)
-    write_map_server(
-        out / "map.yaml",
-        _occupancy("decay-rate", model, stats),
-        origin_xy=[_short(v) for v in np.asarray(spec.origin)],
-        resolution=_short(spec.resolution),
-    )
+    write_map_files(out, "decay-rate", model, stats, meta)
     files += ["map.npz", "map.yaml", "map.pgm"]
 
     summary = {
@@ -264,7 +251,9 @@ def cmd_slam(args) -> int:
     gt = None
     if loaded.has_ground_truth:
         gt = np.asarray(log.poses, float)[idx]
-        a = absolute_trajectory_error(est, gt)
+        trajectories = {"odometry": odo, "front_end": res.front_end_poses, "estimate": est}
+        ates = {k: absolute_trajectory_error(p, gt) for k, p in trajectories.items()}
+        a = ates["estimate"]
         # the ground truth in the estimate's frame (the inverse of the alignment)
         c, s = math.cos(a.rotation_rad), math.sin(a.rotation_rad)
         rot = np.array([[c, s], [-s, c]])
@@ -286,21 +275,13 @@ def cmd_slam(args) -> int:
         f"revisits; front end {summary['front_end_scans_per_s']:.2f} scans/s"
     )
     if gt is not None:
-        errs = _errors(
-            {"odometry": odo, "front_end": res.front_end_poses, "estimate": est},
-            gt,
-            rpe_delta,
-        )
+        errs = _errors(trajectories, ates, gt, rpe_delta)
         summary["errors"] = errs
         summary["rpe_delta_m"] = rpe_delta
-        ate = {
-            "front end": absolute_trajectory_error(res.front_end_poses, gt),
-            "estimate": absolute_trajectory_error(est, gt),
-        }
         fig, axs = plt.subplots(figsize=(8, 3.5), layout="constrained")
         x = stamps - stamps[0] if unit == "s" else stamps
-        for k, color in (("front end", "tab:blue"), ("estimate", "tab:orange")):
-            axs.plot(x, ate[k].errors_m, color=color, lw=0.8, label=k)
+        for k, color in (("front_end", "tab:blue"), ("estimate", "tab:orange")):
+            axs.plot(x, ates[k].errors_m, color=color, lw=0.8, label=k.replace("_", " "))
         axs.set_xlabel("time since the first scan (s)" if unit == "s" else "scan index")
         axs.set_ylabel("position error after SE(2) alignment (m)")
         axs.set_title(f"{loaded.source}: ATE {errs['estimate']['ate_rmse_m']:.3f} m")

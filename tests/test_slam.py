@@ -36,7 +36,7 @@ from lidarjax.slam import (
     run_slam,
     trajectory_log_likelihood,
 )
-from lidarjax.slam._front_end import between_np
+from lidarjax.slam._front_end import between_np, compose_np
 from lidarjax.slam._loops import _wide_search
 from lidarjax.testing import finite_difference
 
@@ -256,6 +256,30 @@ def test_front_end_on_the_office(office_short):
     assert np.median(np.hypot(err_odo[:, 0], err_odo[:, 1])) > 0.02
     assert np.all(np.abs(err[:, :2].mean(0)) < 0.01)
     assert ate.rmse_m < 0.08 and ate.max_m < 0.15
+    # each match's information and gate flag, as match_scan gives them on the map of the
+    # scans before it (rebuilt here at the front end's poses) and the odometry's prior
+    assert r.information.shape == (n, 3, 3) and r.plausible.shape == (n,)
+    np.testing.assert_array_equal(r.information[0], 0.0)
+    assert r.plausible.all()
+    k = 7
+    cfg = FrontEndConfig()
+    grid = GridMap(cfg.resolution_m, cfg.range_cap_m)
+    for j in range(k):
+        grid.add_scan(r.poses[j], AZ, ranges[j])
+    inc = between_np(odo[k - 1], odo[k])
+    d = float(np.hypot(inc[0], inc[1]))
+    sxy = cfg.odometry_sigma_xy_m + cfg.odometry_sigma_rel * d
+    syaw = (
+        cfg.odometry_sigma_yaw_rad
+        + cfg.odometry_sigma_yaw_per_m * d
+        + cfg.odometry_sigma_yaw_rel * abs(float(inc[2]))
+    )
+    pred = compose_np(r.poses[k - 1], inc)
+    m = match_scan(grid, AZ, ranges[k], pred, cfg, prior_sigmas=(sxy, sxy, syaw))
+    np.testing.assert_allclose(m.pose, r.poses[k], atol=1e-9)
+    np.testing.assert_allclose(r.information[k], m.information, rtol=1e-9, atol=1e-6)
+    # a maximum of the scan's log-likelihood: positive definite (1/m^2, 1/rad^2)
+    assert np.linalg.eigvalsh(r.information[1:]).min() > 0
 
 
 @pytest.mark.slow  # ~15 s: keeps the fast file under a minute

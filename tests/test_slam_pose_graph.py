@@ -80,9 +80,11 @@ def check_result(res: PoseGraphResult, poses0, fixed=0):
     np.testing.assert_array_equal(poses[fixed], np.asarray(poses0)[fixed])  # the gauge
 
 
-def gtsam_solve(start, edges, meas, sigmas, robust=None, c=1.0, fixed=0):
+def gtsam_solve(start, edges, meas, sigmas, robust=None, c=1.0, fixed=0, information=None):
     """GTSAM's Levenberg-Marquardt solution (tight prior on ``fixed``), its graph error at
-    the solution and the Cauchy weights of the robust edges there (GTSAM's own kernel)."""
+    the solution and the Cauchy weights of the robust edges there (GTSAM's own kernel).
+    With ``information`` (``[e, 3, 3]``) the edges get GTSAM's full Gaussian noise model
+    ``noiseModel.Gaussian.Information`` instead of ``sigmas``."""
     gtsam = pytest.importorskip("gtsam")
     graph = gtsam.NonlinearFactorGraph()
     graph.add(
@@ -93,7 +95,10 @@ def gtsam_solve(start, edges, meas, sigmas, robust=None, c=1.0, fixed=0):
     kernel = gtsam.noiseModel.mEstimator.Cauchy.Create(c)
     factors = []
     for k, (i, j) in enumerate(edges):
-        model = gtsam.noiseModel.Diagonal.Sigmas(sigmas[k])
+        if information is None:
+            model = gtsam.noiseModel.Diagonal.Sigmas(sigmas[k])
+        else:
+            model = gtsam.noiseModel.Gaussian.Information(information[k])
         if robust is not None and robust[k]:
             model = gtsam.noiseModel.Robust.Create(kernel, model)
         factor = gtsam.BetweenFactorPose2(int(i), int(j), gtsam.Pose2(*meas[k]), model)
@@ -113,9 +118,15 @@ def gtsam_solve(start, edges, meas, sigmas, robust=None, c=1.0, fixed=0):
             for k in range(len(start))
         ]
     )
-    whitened = np.array(
-        [np.linalg.norm(f.unwhitenedError(out) / sigmas[k]) for k, f in enumerate(factors)]
-    )
+    if information is None:
+        whitened = [
+            np.linalg.norm(f.unwhitenedError(out) / sigmas[k]) for k, f in enumerate(factors)
+        ]
+    else:
+        whitened = [
+            np.sqrt(f.unwhitenedError(out) @ information[k] @ f.unwhitenedError(out))
+            for k, f in enumerate(factors)
+        ]
     weights = np.array([kernel.weight(s) for s in whitened])
     return poses, graph.error(out), graph.error(values), weights
 
@@ -154,6 +165,70 @@ def test_matches_gtsam_cauchy():
     np.testing.assert_allclose(w[loops], weights[loops], rtol=1e-5)
     assert w[N + 5] < 0.05
     assert np.delete(w[loops], 6).min() > 0.3  # loop N + 5 is the 7th
+
+
+def random_information(seed: int, sigmas):
+    """``[e, 3, 3]`` information matrices with correlated axes (random rotations of the
+    ``(x, y, yaw)`` axes scaled by ``sigmas``), and their square roots ``W`` (``W^T W``)."""
+    rng = np.random.default_rng(seed)
+    q, _ = np.linalg.qr(rng.normal(size=(len(sigmas), 3, 3)))
+    scale = rng.uniform(0.5, 2.0, size=(len(sigmas), 3))
+    w = np.einsum("ei,eij->eij", 1.0 / (sigmas * scale), q)  # W = diag(1/s) Q
+    return np.einsum("eki,ekj->eij", w, w), w
+
+
+def test_full_information_matches_gtsam():
+    """Edges with full (correlated) information matrices, Cauchy loops and one outlier,
+    against GTSAM's ``noiseModel.Gaussian.Information`` (the same cost: ``0.5 r^T L r``,
+    robust on the loops)."""
+    truth, edges, meas, sigmas, loops, start = make_graph(5)
+    meas[N + 3] = between(truth[edges[N + 3, 0]], truth[edges[N + 3, 1]]) + [0.8, 0.5, -0.3]
+    info, w = random_information(6, sigmas)
+    c = 2.0
+    res = optimize_pose_graph(
+        start, edges, meas, sqrt_information=w, robust=loops, cauchy_scale=c, tol=1e-15,
+        max_iters=200,
+    )  # fmt: skip
+    ref, err, err0, weights = gtsam_solve(
+        start, edges, meas, sigmas, robust=loops, c=c, information=info
+    )
+    check_result(res, start)
+    assert pose_error(res.poses, ref).max() < 1e-6
+    np.testing.assert_allclose(float(res.cost0), err0, rtol=1e-9)
+    np.testing.assert_allclose(float(res.cost), err, rtol=1e-9)
+    np.testing.assert_allclose(np.asarray(res.edge_weights)[loops], weights[loops], rtol=1e-5)
+    assert float(res.edge_weights[N + 3]) < 0.05
+    # any square root of the same information gives the same solve (W -> R W, R orthogonal)
+    rot, _ = np.linalg.qr(np.random.default_rng(7).normal(size=(len(edges), 3, 3)))
+    res2 = optimize_pose_graph(
+        start, edges, meas, sqrt_information=rot @ w, robust=loops, cauchy_scale=c, tol=1e-15,
+        max_iters=200,
+    )  # fmt: skip
+    assert pose_error(res2.poses, res.poses).max() < 1e-6  # as converged as against GTSAM
+
+
+def test_diagonal_sqrt_information_is_sigmas():
+    _, edges, meas, sigmas, loops, start = make_graph(0)
+    a = optimize_pose_graph(start, edges, meas, sigmas, robust=loops, cauchy_scale=2.0)
+    w = np.eye(3) / sigmas[:, :, None]
+    b = optimize_pose_graph(start, edges, meas, sqrt_information=w, robust=loops, cauchy_scale=2.0)
+    np.testing.assert_array_equal(np.asarray(a.poses), np.asarray(b.poses))
+    assert float(a.cost) == float(b.cost) and int(a.n_iters) == int(b.n_iters)
+
+
+def test_rank_deficient_edges():
+    """Edges that fix only some directions (a corridor's match: across, not along) are
+    allowed; where the others fix the rest, the solve is the same as with those directions
+    given any other weight on a consistent graph."""
+    truth, edges, meas, sigmas, _, _ = make_graph(2, noise=0.0)
+    rng = np.random.default_rng(8)
+    start = truth + rng.normal(size=truth.shape) * [0.3, 0.3, 0.1]
+    start[0] = truth[0]
+    w = np.eye(3) / sigmas[:, :, None]
+    w[N:, 0, :] = 0.0  # loops 1..: no information along x
+    res = optimize_pose_graph(start, edges, meas, sqrt_information=w)
+    check_result(res, start)
+    assert pose_error(res.poses, truth).max() < 1e-9
 
 
 @pytest.mark.parametrize("fixed", [0, 27])
@@ -219,7 +294,7 @@ def test_max_iters_zero_and_nan_ends_loop():
         jnp.asarray(start),
         jnp.asarray(edges, jnp.int32),
         jnp.asarray(meas),
-        jnp.asarray(sigmas),
+        jnp.eye(3) / jnp.asarray(sigmas)[:, :, None],
         jnp.zeros(len(edges), bool),
         jnp.asarray(1.0, jnp.float64),
         jnp.asarray(0, jnp.int32),
@@ -260,6 +335,18 @@ def _bad(kind):
         sigmas[2, 0] = -0.1
     elif kind == "sigmas_nan":
         sigmas[2, 1] = np.nan
+    elif kind == "sigmas_and_sqrt":
+        kwargs["sqrt_information"] = np.eye(3) / sigmas[:, :, None]
+    elif kind == "sigmas_none":
+        sigmas = None
+    elif kind == "sqrt_information_shape":
+        sigmas = None
+        kwargs["sqrt_information"] = np.zeros((len(edges), 3))
+    elif kind == "sqrt_information_nan":
+        w = np.eye(3) / sigmas[:, :, None]
+        w[3, 0, 1] = np.nan
+        sigmas = None
+        kwargs["sqrt_information"] = w
     elif kind == "robust_shape":
         kwargs["robust"] = np.ones(len(edges) - 1, bool)
     elif kind == "robust_dtype":
@@ -284,7 +371,8 @@ def _bad(kind):
     [
         "poses0_shape", "poses0_nan", "poses0_empty", "edges_shape", "edges_float", "edges_range",
         "edges_negative", "edges_self", "edges_empty", "measurements_shape", "measurements_inf",
-        "sigmas_zero", "sigmas_negative", "sigmas_nan", "robust_shape", "robust_dtype",
+        "sigmas_zero", "sigmas_negative", "sigmas_nan", "sigmas_and_sqrt", "sigmas_none",
+        "sqrt_information_shape", "sqrt_information_nan", "robust_shape", "robust_dtype",
         "cauchy_scale", "fixed_range", "fixed_negative", "fixed_float", "max_iters", "tol",
     ],
 )  # fmt: skip
@@ -292,5 +380,6 @@ def test_bad_input(kind):
     args, kwargs = _bad(kind)
     name = kind.split("_")[0] if not kind.startswith("cauchy") else "cauchy_scale"
     name = "max_iters" if kind == "max_iters" else name
+    name = "sqrt_information" if kind.startswith("sqrt_information") else name
     with pytest.raises(ValueError, match=f"^{name}:"):
         optimize_pose_graph(*args, **kwargs)

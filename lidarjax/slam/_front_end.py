@@ -622,6 +622,10 @@ class FrontEndResult:
         seconds: wall time of the run (s), first compilation included.
         seconds_per_scan: ``[N]`` wall time per scan (s).
         grid: the final :class:`GridMap`.
+        information: ``[N 3 3]`` each match's :attr:`MatchResult.information` (the
+            scan's log-likelihood alone, no prior; zeros for the first scan).
+        plausible: ``[N]`` bool, False where neither candidate of the match passed the
+            gate and the fallback was taken (True for the first scan).
     """
 
     poses: np.ndarray
@@ -629,6 +633,8 @@ class FrontEndResult:
     seconds: float
     seconds_per_scan: np.ndarray
     grid: GridMap
+    information: np.ndarray | None = None
+    plausible: np.ndarray | None = None
 
 
 def _check_inputs(ranges_m, azimuths_rad, odometry_xy_yaw):
@@ -682,6 +688,8 @@ def run_front_end(
     poses = np.zeros((n, 3))
     poses[0] = odo[0] if initial_pose is None else np.asarray(initial_pose, float)
     n_used = np.zeros(n, dtype=np.int64)
+    info = np.zeros((n, 3, 3))
+    plausible = np.ones(n, bool)
     secs = np.zeros(n)
     grid = GridMap(cfg.resolution_m, cfg.range_cap_m)
     t_start = time.perf_counter()
@@ -705,9 +713,10 @@ def run_front_end(
         )
         m = match_scan(grid, az, rng[k], pred, cfg, prior_sigmas=(sxy, sxy, syaw))
         poses[k], n_used[k] = m.pose, m.n_used
+        info[k], plausible[k] = m.information, m.plausible
         grid.add_scan(poses[k], az, rng[k])
         old = k - cfg.local_map_scans
         if cfg.local_map_scans > 0 and old >= 0:
             grid.add_scan(poses[old], az, rng[old], sign=-1.0)
         secs[k] = time.perf_counter() - t0
-    return FrontEndResult(poses, n_used, time.perf_counter() - t_start, secs, grid)
+    return FrontEndResult(poses, n_used, time.perf_counter() - t_start, secs, grid, info, plausible)

@@ -7,6 +7,10 @@ Poses are ``(x, y, yaw)`` rows (m, m, rad). An edge ``(i, j)`` carries a measure
 
     r_ij = Log(Z_ij^-1 (T_i^-1 T_j)) / sigma_ij          (SE(2) log, element-wise divide)
 
+or, for an edge with a full ``[3, 3]`` square-root information ``W_ij`` (``W^T W`` the
+information matrix; ``W = diag(1 / sigma)`` is the case above),
+``r_ij = W_ij Log(Z_ij^-1 (T_i^-1 T_j))``,
+
 and the cost is ``sum_ij rho(|r_ij|)`` with ``rho(s) = s^2 / 2`` for ordinary edges and the
 Cauchy kernel ``rho(s) = c^2 / 2 * log(1 + s^2 / c^2)`` (weight ``w(s) = rho'(s) / s =
 1 / (1 + s^2 / c^2)``) on the robust ones, applied to the norm of the whole whitened
@@ -75,14 +79,14 @@ def _se2(params) -> jaxlie.SE2:
     return jaxlie.SE2(params)
 
 
-def _edge_residual(p_i, p_j, z, inv_sigma) -> Array:
-    """Whitened residual ``[3]`` of one edge: ``Log(Z^-1 (T_i^-1 T_j)) / sigma``."""
+def _edge_residual(p_i, p_j, z, sqrt_info) -> Array:
+    """Whitened residual ``[3]`` of one edge: ``W Log(Z^-1 (T_i^-1 T_j))``."""
     # jaxlie's log returns float64 for float32 input when x64 is on: keep the input's dtype
     tangent = (_se2(z).inverse() @ (_se2(p_i).inverse() @ _se2(p_j))).log().astype(p_i.dtype)
-    return tangent * inv_sigma
+    return sqrt_info @ tangent
 
 
-def _edge_linearise(p_i, p_j, z, inv_sigma):
+def _edge_linearise(p_i, p_j, z, sqrt_info):
     """Residual ``[3]`` and Jacobian ``[3, 6]`` w.r.t. the tangent deltas ``(d_i, d_j)`` of
     ``T_i exp(d_i)``, ``T_j exp(d_j)`` at zero.
 
@@ -96,7 +100,7 @@ def _edge_linearise(p_i, p_j, z, inv_sigma):
     def f(d):
         t_i = _se2(p_i) @ jaxlie.SE2.from_xy_theta(d[0], d[1], d[2])
         t_j = _se2(p_j) @ jaxlie.SE2.from_xy_theta(d[3], d[4], d[5])
-        r = _edge_residual(t_i.parameters(), t_j.parameters(), z, inv_sigma)
+        r = _edge_residual(t_i.parameters(), t_j.parameters(), z, sqrt_info)
         return r, r
 
     jac, r = jax.jacfwd(f, has_aux=True)(jnp.zeros(6, p_i.dtype))
@@ -126,7 +130,7 @@ def _to_xy_yaw(params) -> Array:
 
 
 @eqx.filter_jit
-def _solve(poses0, edges, z_xy_yaw, sigmas, robust, c, fixed, max_iters, tol):
+def _solve(poses0, edges, z_xy_yaw, sqrt_info, robust, c, fixed, max_iters, tol):
     """The Levenberg-Marquardt loop. Each pass evaluates the candidate poses once
     (residuals, Jacobians, weights, cost: the only copy of the edge model in the program),
     accepts or rejects them, and solves for the next candidate from the normal equations
@@ -136,7 +140,6 @@ def _solve(poses0, edges, z_xy_yaw, sigmas, robust, c, fixed, max_iters, tol):
     e = edges.shape[0]
     params0 = jaxlie.SE2.from_xy_theta(poses0[:, 0], poses0[:, 1], poses0[:, 2]).parameters()
     z = jaxlie.SE2.from_xy_theta(z_xy_yaw[:, 0], z_xy_yaw[:, 1], z_xy_yaw[:, 2]).parameters()
-    inv_sigma = 1.0 / sigmas
     idx = (3 * edges[:, :, None] + jnp.arange(3)[None, None, :]).reshape(-1, 6)  # [e, 6]
     free = jnp.repeat(jnp.arange(n) != fixed, 3)  # [3n]: the gauge node's rows are fixed
     eps = jnp.finfo(dtype).eps
@@ -170,7 +173,7 @@ def _solve(poses0, edges, z_xy_yaw, sigmas, robust, c, fixed, max_iters, tol):
 
     def body(state):
         evals, _, params, cost, cost0, weights, h, g, lam, cand = state
-        r, jac = jax.vmap(_edge_linearise)(cand[edges[:, 0]], cand[edges[:, 1]], z, inv_sigma)
+        r, jac = jax.vmap(_edge_linearise)(cand[edges[:, 0]], cand[edges[:, 1]], z, sqrt_info)
         terms, w = _robust_terms(r, robust, c)
         cand_cost = jnp.sum(terms)
         first = evals == 0
@@ -281,8 +284,9 @@ def optimize_pose_graph(
     poses0: Float[Array, "n 3"],
     edges: Int[Array, "e 2"],
     measurements: Float[Array, "e 3"],
-    sigmas: Float[Array, "e 3"],
+    sigmas: Float[Array, "e 3"] | None = None,
     *,
+    sqrt_information: Float[Array, "e 3 3"] | None = None,
     robust: Bool[Array, " e"] | None = None,
     cauchy_scale: float = 1.0,
     fixed: int = 0,
@@ -291,7 +295,8 @@ def optimize_pose_graph(
 ) -> PoseGraphResult:
     """Optimise an SE(2) pose graph by Levenberg-Marquardt on the manifold.
 
-    Minimises ``sum_e rho(|Log(Z_e^-1 (T_i^-1 T_j)) / sigma_e|)`` over all poses but the
+    Minimises ``sum_e rho(|W_e Log(Z_e^-1 (T_i^-1 T_j))|)`` (``W_e = diag(1 / sigma_e)``,
+    or a full square-root information) over all poses but the
     gauge node ``fixed`` (held at ``poses0[fixed]``), with ``rho(s) = s^2 / 2`` and, on the
     ``robust`` edges, the Cauchy kernel ``rho(s) = c^2 / 2 log(1 + s^2 / c^2)`` (IRLS
     weight ``1 / (1 + s^2 / c^2)``, GTSAM's ``mEstimator.Cauchy``), see the module
@@ -304,6 +309,12 @@ def optimize_pose_graph(
         measurements: ``[e, 3]`` relative poses ``(dx m, dy m, dyaw rad)`` of
             ``poses[i]^-1 poses[j]``.
         sigmas: ``[e, 3]`` standard deviations ``(m, m, rad)`` of the measurements, ``> 0``.
+            Give either ``sigmas`` or ``sqrt_information``.
+        sqrt_information: ``[e, 3, 3]`` square-root information ``W`` of each measurement
+            (``W^T W`` its information matrix, in ``(m, m, rad)`` units inverted, in the
+            tangent space of ``T_i^-1 T_j`` (right perturbation); e.g. the transposed
+            Cholesky factor of the information). A singular ``W`` (an edge that fixes
+            only some directions) is allowed; the graph as a whole must fix every pose.
         robust: ``[e]`` bool, the edges (loop closures) that get the Cauchy kernel; default
             none.
         cauchy_scale: the Cauchy scale ``c`` in whitened units (standard deviations), > 0.
@@ -317,7 +328,9 @@ def optimize_pose_graph(
 
     Raises:
         ValueError: naming the argument, for wrong shapes, non-finite poses or
-            measurements, sigmas ``<= 0``, edge indices out of range or ``i == j``, no
+            measurements, sigmas ``<= 0``, a non-finite ``sqrt_information``, both or
+            neither of ``sigmas`` and ``sqrt_information``, edge indices out of range or
+            ``i == j``, no
             edges, ``fixed`` out of range, ``cauchy_scale <= 0``, ``max_iters < 0`` or a
             bad ``tol``. Traced (jitted) values are checked with ``eqx.error_if`` instead.
     """
@@ -332,7 +345,17 @@ def optimize_pose_graph(
     if e == 0:
         raise ValueError("edges: the graph has no edges")
     measurements = _array(measurements, "measurements", (e, 3))
-    sigmas = _array(sigmas, "sigmas", (e, 3))
+    if (sigmas is None) == (sqrt_information is None):
+        raise ValueError(
+            "sigmas: give either sigmas or sqrt_information (one noise model per edge), "
+            f"got {'both' if sigmas is not None else 'neither'}"
+        )
+    if sigmas is not None:
+        sigmas = _array(sigmas, "sigmas", (e, 3))
+        weights = sigmas
+    else:
+        sqrt_information = _array(sqrt_information, "sqrt_information", (e, 3, 3))
+        weights = sqrt_information
     if robust is None:
         robust = np.zeros(e, bool)
     else:
@@ -343,7 +366,7 @@ def optimize_pose_graph(
                 f"got {robust.dtype} of shape {tuple(robust.shape)}"
             )
     # float32 or float64 (with x64 enabled), from the inputs; integers become floats
-    dtype = np.result_type(poses0.dtype, measurements.dtype, sigmas.dtype)
+    dtype = np.result_type(poses0.dtype, measurements.dtype, weights.dtype)
     if not np.issubdtype(dtype, np.floating):
         dtype = np.dtype(float)
     dtype = jax.dtypes.canonicalize_dtype(dtype)
@@ -365,9 +388,16 @@ def optimize_pose_graph(
 
     poses0 = _check_values(poses0, not_finite, "poses0", "contains NaN or inf")
     measurements = _check_values(measurements, not_finite, "measurements", "contains NaN or inf")
-    sigmas = _check_values(
-        sigmas, lambda x: ~(x > 0) | (x == np.inf), "sigmas", "expected finite values > 0"
-    )
+    if sigmas is not None:
+        sigmas = _check_values(
+            sigmas, lambda x: ~(x > 0) | (x == np.inf), "sigmas", "expected finite values > 0"
+        )
+        xp = jnp if _traced(sigmas) else np
+        sqrt_info = xp.eye(3) / sigmas.astype(dtype)[:, :, None]  # diag(1 / sigma)
+    else:
+        sqrt_info = _check_values(
+            sqrt_information, not_finite, "sqrt_information", "contains NaN or inf"
+        )
     edges = _check_values(
         edges, lambda x: (x < 0) | (x >= n), "edges", f"node index out of range [0, {n})"
     )
@@ -378,7 +408,7 @@ def optimize_pose_graph(
         poses0.astype(dtype),
         edges.astype(jnp.int32),
         measurements.astype(dtype),
-        sigmas.astype(dtype),
+        sqrt_info.astype(dtype),
         robust,
         jnp.asarray(cauchy_scale, dtype),
         jnp.asarray(fixed, jnp.int32),

@@ -127,6 +127,35 @@ def test_slam_is_run_slam_on_the_log(office_slam, office_log):
     np.testing.assert_allclose(fe, ref.front_end_poses, atol=1e-9)
 
 
+@pytest.mark.slow  # ~60 s: SLAM of 12 scans and the alternating back end
+def test_slam_back_end_is_run_slams(office_log, tmp_path):
+    """``--back-end alternating``: the written estimate is :func:`lidarjax.slam.run_slam`'s
+    with that back end (the CLI's back-end map: the front end's cells, a 10 m cap), and it
+    differs from the pose graph's (the front end's trajectory is written beside it)."""
+    from lidarjax import slam
+
+    path = office_log[0]
+    out = tmp_path / "out"
+    args = ["slam", str(path), "-o", str(out), "--no-progress", "--scans", "0:12"]
+    assert main([*args, "--back-end", "alternating"]) == 0
+    _, est = _poses_of_tum(out / "trajectory.tum")
+    summary = json.loads((out / "slam.json").read_text())
+    assert summary["back_end"] == "alternating" and summary["seconds"]["back_end"] > 0
+    log = load_carmen(path)
+    cap = log.usable_range_m
+    cfg = slam.SlamConfig(
+        front=slam.FrontEndConfig(range_cap_m=cap, window_m=cap + 2.0),
+        back=slam.BackEndConfig(range_cap_m=10.0),
+        back_end="alternating",
+        loop_rounds=2,
+    )
+    ref = slam.run_slam(
+        np.minimum(log.ranges_m[:12], cap), log.azimuths_rad, log.odometry[:12], cfg
+    )
+    np.testing.assert_allclose(est, ref.poses, atol=1e-9)
+    assert np.abs(ref.poses - ref.pose_graph_poses).max() > 1e-6  # the back end moved them
+
+
 @pytest.mark.slow  # ~60 s: SLAM a second time
 def test_slam_odometry_noise(office_log, office_slam, tmp_path):
     """--odometry-noise K widens the odometry model K times: with K = 4 the pose graph's

@@ -41,7 +41,7 @@ OUT = RESULTS / "slam.json"
 def log_inputs(name: str, scans: int):
     """``(log, n, ranges [n B], azimuths [B], odometry [n 3])`` of the first ``scans`` scans
     of a shared log, with the experiment's drifting odometry (``configs/slam.yaml``)."""
-    log = load_carmen(fetch(name))
+    log = load_carmen(fetch(name), azimuth_layout="sweep")  # as the experiment
     n = min(scans, log.n_scans)
     ranges = np.minimum(log.ranges_m[:n], log.max_range_m)
     odo = wheel_odometry(

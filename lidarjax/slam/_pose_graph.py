@@ -296,11 +296,11 @@ def optimize_pose_graph(
     """Optimise an SE(2) pose graph by Levenberg-Marquardt on the manifold.
 
     Minimises ``sum_e rho(|W_e Log(Z_e^-1 (T_i^-1 T_j))|)`` (``W_e = diag(1 / sigma_e)``,
-    or a full square-root information) over all poses but the
-    gauge node ``fixed`` (held at ``poses0[fixed]``), with ``rho(s) = s^2 / 2`` and, on the
-    ``robust`` edges, the Cauchy kernel ``rho(s) = c^2 / 2 log(1 + s^2 / c^2)`` (IRLS
-    weight ``1 / (1 + s^2 / c^2)``, GTSAM's ``mEstimator.Cauchy``), see the module
-    docstring. Runs as one jitted program; float32 and float64 (the dtype of the inputs).
+    or a full square-root information) over all poses but the gauge node ``fixed`` (held
+    at ``poses0[fixed]``), with ``rho(s) = s^2 / 2`` and, on the ``robust`` edges, the
+    Cauchy kernel ``rho(s) = c^2 / 2 log(1 + s^2 / c^2)`` (IRLS weight
+    ``1 / (1 + s^2 / c^2)``, GTSAM's ``mEstimator.Cauchy``), see the module docstring.
+    Runs as one jitted program; float32 and float64 (the dtype of the inputs).
 
     Args:
         poses0: ``[n, 3]`` initial poses ``(x m, y m, yaw rad)``.
@@ -330,9 +330,9 @@ def optimize_pose_graph(
         ValueError: naming the argument, for wrong shapes, non-finite poses or
             measurements, sigmas ``<= 0``, a non-finite ``sqrt_information``, both or
             neither of ``sigmas`` and ``sqrt_information``, edge indices out of range or
-            ``i == j``, no
-            edges, ``fixed`` out of range, ``cauchy_scale <= 0``, ``max_iters < 0`` or a
-            bad ``tol``. Traced (jitted) values are checked with ``eqx.error_if`` instead.
+            ``i == j``, no edges, ``fixed`` out of range, ``cauchy_scale <= 0``,
+            ``max_iters < 0`` or a bad ``tol``. Traced (jitted) values are checked with
+            ``eqx.error_if`` instead.
     """
     poses0 = _array(poses0, "poses0", (None, 3))
     n = poses0.shape[0]

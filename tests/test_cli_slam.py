@@ -106,6 +106,17 @@ def test_slam_outputs(office_slam, office_log):
     header, *rows = (out / "loops.csv").read_text().splitlines()
     assert header == "kind,scan_from,scan_to,dx_m,dy_m,dyaw_rad"
     assert len(rows) == summary["n_loops"] + summary["n_revisits"]
+    # one row per scan of the front end's matches; the first scan has none
+    fe_rows = np.genfromtxt(out / "front_end.csv", delimiter=",", names=True)
+    assert fe_rows.dtype.names == (
+        "scan", "rays_used", "sd_x_m", "sd_y_m", "sd_yaw_rad", "passed_gate", "seconds"
+    )  # fmt: skip
+    np.testing.assert_array_equal(fe_rows["scan"], np.arange(N_SCANS))
+    assert fe_rows["rays_used"][0] == 0 and np.isnan(fe_rows["sd_x_m"][0])
+    assert np.all(fe_rows["rays_used"][1:] > 0.5 * N_BEAMS)
+    sd = np.stack([fe_rows[k][1:] for k in ("sd_x_m", "sd_y_m", "sd_yaw_rad")], 1)
+    assert np.all(np.isfinite(sd) & (sd > 0))
+    assert set(fe_rows["passed_gate"]) <= {0.0, 1.0} and np.all(fe_rows["seconds"] >= 0)
 
 
 @pytest.mark.slow  # ~60 s: SLAM a second time
@@ -125,6 +136,13 @@ def test_slam_is_run_slam_on_the_log(office_slam, office_log):
     ref = slam.run_slam(np.minimum(log.ranges_m, cap), log.azimuths_rad, log.odometry, cfg)
     np.testing.assert_allclose(est, ref.poses, atol=1e-9)  # TUM: full precision
     np.testing.assert_allclose(fe, ref.front_end_poses, atol=1e-9)
+    # front_end.csv: the matches' rays, gate flags and the sds of their information
+    rows = np.genfromtxt(out / "front_end.csv", delimiter=",", names=True)
+    np.testing.assert_array_equal(rows["rays_used"], ref.front_end_n_used)
+    np.testing.assert_array_equal(rows["passed_gate"], ref.front_end_plausible)
+    cov = np.linalg.inv(ref.front_end_information[1:])
+    for c, name in enumerate(("sd_x_m", "sd_y_m", "sd_yaw_rad")):
+        np.testing.assert_allclose(rows[name][1:], np.sqrt(cov[:, c, c]), rtol=1e-5)
 
 
 @pytest.mark.slow  # ~60 s: SLAM of 12 scans and the alternating back end

@@ -101,6 +101,30 @@ def _write_loops(path, idx, loops, revisits) -> None:
     path.write_text("\n".join(rows) + "\n")
 
 
+def _write_front_end(path, idx, res) -> None:
+    """``front_end.csv``: one row per scan (index in LOG) of the front end's match: rays in
+    its objective, the standard deviations of the match's own information in the scan's
+    frame (rays taken as independent, so over-confident: for comparing scans, e.g. a
+    corridor's large along-track sd; empty for the first scan, ``inf`` where the
+    information is not positive definite), whether it passed the gate, and its wall
+    time."""
+    rows = ["scan,rays_used,sd_x_m,sd_y_m,sd_yaw_rad,passed_gate,seconds"]
+    for k, i in enumerate(idx):
+        info = np.asarray(res.front_end_information[k], float)
+        info = 0.5 * (info + info.T)
+        if k == 0:
+            sd = ",,"  # the first scan starts the map: no match
+        elif np.all(np.isfinite(info)) and np.linalg.eigvalsh(info)[0] > 0:
+            sd = ",".join(f"{v:.6g}" for v in np.sqrt(np.diag(np.linalg.inv(info))))
+        else:
+            sd = "inf,inf,inf"
+        rows.append(
+            f"{i},{int(res.front_end_n_used[k])},{sd},{int(res.front_end_plausible[k])},"
+            f"{float(res.front_end_seconds_per_scan[k]):.6f}"
+        )
+    path.write_text("\n".join(rows) + "\n")
+
+
 def _errors(poses: dict, ates: dict, gt: np.ndarray, delta_m: float) -> dict:
     """ATE (``ates``: each trajectory's :func:`~lidarjax.metrics.absolute_trajectory_error`)
     and RPE per ``delta_m`` of path of each of ``poses`` against ``gt``."""
@@ -191,7 +215,8 @@ def cmd_slam(args) -> int:
         write_tum(out / name, stamps, jaxlie.SE2.from_xy_theta(p[:, 0], p[:, 1], p[:, 2]))
         files.append(name)
     _write_loops(out / "loops.csv", idx, res.loops, res.revisits)
-    files.append("loops.csv")
+    _write_front_end(out / "front_end.csv", idx, res)
+    files += ["loops.csv", "front_end.csv"]
 
     # the map of the estimate, as `lidarjax map` builds one at a log's poses
     poses_all = np.full((log.n_scans, 3), np.nan)

@@ -138,6 +138,12 @@ class SlamResult:
         seconds: wall time per stage (s): ``front_end``, ``loops`` (with the revisits),
             ``pose_graph``, ``back_end``.
         front_end_seconds_per_scan: ``[N]``.
+        front_end_n_used: ``[N]`` rays in each match's objective (0 for the first scan).
+        front_end_information: ``[N 3 3]`` each match's information (``FrontEndResult
+            .information``: the scan's log-likelihood alone, rays taken as independent, so
+            over-confident; zeros for the first scan).
+        front_end_plausible: ``[N]`` bool, False where the match failed the gate and the
+            front end fell back to the odometry's prediction (``FrontEndResult.plausible``).
     """
 
     poses: np.ndarray
@@ -148,6 +154,9 @@ class SlamResult:
     back_end: BackEndResult | None
     seconds: dict
     front_end_seconds_per_scan: np.ndarray
+    front_end_n_used: np.ndarray | None = None
+    front_end_information: np.ndarray | None = None
+    front_end_plausible: np.ndarray | None = None
 
 
 def odometry_sigmas(increments: np.ndarray, cfg: FrontEndConfig) -> np.ndarray:
@@ -324,4 +333,16 @@ def run_slam(
         back = f(pg_poses, az, rng, edges, inc, odometry_sigmas(inc, cfg.front), cfg.back)
         poses = back.poses
         secs["back_end"] = back.seconds
-    return SlamResult(poses, fe.poses, pg_poses, loops, revisits, back, secs, fe.seconds_per_scan)
+    return SlamResult(
+        poses,
+        fe.poses,
+        pg_poses,
+        loops,
+        revisits,
+        back,
+        secs,
+        fe.seconds_per_scan,
+        fe.n_used,
+        fe.information,
+        fe.plausible,
+    )

@@ -117,6 +117,7 @@ def test_slam_outputs(office_slam, office_log):
     sd = np.stack([fe_rows[k][1:] for k in ("sd_x_m", "sd_y_m", "sd_yaw_rad")], 1)
     assert np.all(np.isfinite(sd) & (sd > 0))
     assert set(fe_rows["passed_gate"]) <= {0.0, 1.0} and np.all(fe_rows["seconds"] >= 0)
+    assert summary["front_end_gate_fallbacks"] == np.sum(fe_rows["passed_gate"] == 0)
 
 
 @pytest.mark.slow  # ~60 s: SLAM a second time

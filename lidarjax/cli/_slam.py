@@ -265,6 +265,8 @@ def cmd_slam(args) -> int:
         "odometry": odo_source,
         "n_loops": int(len(res.loops.edges)),
         "n_revisits": int(len(res.revisits.edges)),
+        # scans whose match failed the gate: placed near the odometry's prediction
+        "front_end_gate_fallbacks": int(np.sum(~np.asarray(res.front_end_plausible[1:]))),
         "seconds": seconds,
         "front_end_scans_per_s": n_fe / max(seconds.get("front_end", 0.0), 1e-9),
         "time_unit": unit,
@@ -297,7 +299,8 @@ def cmd_slam(args) -> int:
     print(
         f"SLAM ({args.model} matching, back end {args.back_end}) on {n_fe} scans of "
         f"{loaded.source}: {summary['n_loops']} loop closures, {summary['n_revisits']} "
-        f"revisits; front end {summary['front_end_scans_per_s']:.2f} scans/s"
+        f"revisits; front end {summary['front_end_scans_per_s']:.2f} scans/s, "
+        f"{summary['front_end_gate_fallbacks']} matches failed its gate"
     )
     if gt is not None:
         errs = _errors(trajectories, ates, gt, rpe_delta)

@@ -143,7 +143,8 @@ class SlamResult:
             .information``: the scan's log-likelihood alone, rays taken as independent, so
             over-confident; zeros for the first scan).
         front_end_plausible: ``[N]`` bool, False where the match failed the gate and the
-            front end fell back to the odometry's prediction (``FrontEndResult.plausible``).
+            front end fell back (a match under a tighter prior, or the odometry's
+            prediction; ``FrontEndResult.plausible``).
     """
 
     poses: np.ndarray

@@ -30,6 +30,7 @@ from lidarjax.slam import (
     front_end_pose_graph,
     joint_objective,
     match_scan,
+    odometry_sigmas,
     optimize_alternating,
     optimize_joint,
     run_front_end,
@@ -267,15 +268,9 @@ def test_front_end_on_the_office(office_short):
     for j in range(k):
         grid.add_scan(r.poses[j], AZ, ranges[j])
     inc = between_np(odo[k - 1], odo[k])
-    d = float(np.hypot(inc[0], inc[1]))
-    sxy = cfg.odometry_sigma_xy_m + cfg.odometry_sigma_rel * d
-    syaw = (
-        cfg.odometry_sigma_yaw_rad
-        + cfg.odometry_sigma_yaw_per_m * d
-        + cfg.odometry_sigma_yaw_rel * abs(float(inc[2]))
-    )
     pred = compose_np(r.poses[k - 1], inc)
-    m = match_scan(grid, AZ, ranges[k], pred, cfg, prior_sigmas=(sxy, sxy, syaw))
+    sigmas = odometry_sigmas(inc[None], cfg)[0]
+    m = match_scan(grid, AZ, ranges[k], pred, cfg, prior_sigmas=sigmas)
     np.testing.assert_allclose(m.pose, r.poses[k], atol=1e-9)
     np.testing.assert_allclose(r.information[k], m.information, rtol=1e-9, atol=1e-6)
     # a maximum of the scan's log-likelihood: positive definite (1/m^2, 1/rad^2)

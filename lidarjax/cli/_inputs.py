@@ -17,6 +17,7 @@ __all__ = [
     "CliInputError",
     "LoadedLog",
     "load_log",
+    "load_log_scans",
     "out_dir",
     "parse_floats",
     "parse_scans",
@@ -242,3 +243,12 @@ def load_log(
     except (DatasetFormatError, OSError, EOFError, ValueError) as e:
         raise _format_error(argument, e) from None
     return LoadedLog(log, value, "carmen", True, azimuth_layout=layout)
+
+
+def load_log_scans(args) -> tuple[LoadedLog, np.ndarray]:
+    """:func:`load_log` of a command's ``LOG``, ``--topic`` and ``--azimuth-layout``, its
+    note printed, and the scan indices of its ``--scans``."""
+    loaded = load_log(args.log, topic=args.topic, azimuth_layout=args.azimuth_layout)
+    if loaded.note:
+        print(f"note: {loaded.note}")
+    return loaded, parse_scans(args.scans, loaded.log.n_scans)

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ._inputs import CliInputError, LoadedLog, load_log, out_dir, parse_scans, require_file
+from ._inputs import CliInputError, LoadedLog, load_log_scans, out_dir, require_file
 
 __all__ = ["MODELS", "cmd_map", "load_map", "model_from_stats", "scan_ranges", "write_map_files"]
 
@@ -219,11 +219,8 @@ def cmd_map(args) -> int:
     if args.chunk < 1:
         raise CliInputError("--chunk", f"must be >= 1, got {args.chunk}")
     sigma = _positive(args.sigma, "--sigma")
-    loaded = load_log(args.log, topic=args.topic, azimuth_layout=args.azimuth_layout)
+    loaded, idx = load_log_scans(args)
     log = loaded.log
-    if loaded.note:
-        print(f"note: {loaded.note}")
-    idx = parse_scans(args.scans, log.n_scans)
     r_max = log.usable_range_m if args.max_range is None else args.max_range
     r_max = _positive(float(r_max), "--max-range")
     if r_max <= R_MIN_M:

@@ -10,7 +10,7 @@ import math
 
 import numpy as np
 
-from ._inputs import CliInputError, load_log, out_dir, parse_scans
+from ._inputs import CliInputError, load_log_scans, out_dir
 from ._localize import _stamps
 from ._map import R_MIN_M, _positive, build_stats, model_from_stats, scan_ranges, write_map_files
 
@@ -164,11 +164,8 @@ def cmd_slam(args) -> int:
     resolution = _positive(args.resolution, "--resolution")
     noise = _positive(args.odometry_noise, "--odometry-noise")
     rpe_delta = _positive(args.rpe_delta, "--rpe-delta")
-    loaded = load_log(args.log, topic=args.topic, azimuth_layout=args.azimuth_layout)
+    loaded, idx = load_log_scans(args)
     log = loaded.log
-    if loaded.note:
-        print(f"note: {loaded.note}")
-    idx = parse_scans(args.scans, log.n_scans)
     if idx.size < 2:
         raise CliInputError("--scans", "select at least 2 scans")
     usable = float(log.usable_range_m)

@@ -16,6 +16,7 @@ from ._front_end import FrontEndResult as FrontEndResult
 from ._front_end import GridMap as GridMap
 from ._front_end import MatchResult as MatchResult
 from ._front_end import match_scan as match_scan
+from ._front_end import odometry_sigmas as odometry_sigmas
 from ._front_end import run_front_end as run_front_end
 from ._loops import MIN_MEAN_LOG_LIKELIHOOD as MIN_MEAN_LOG_LIKELIHOOD
 from ._loops import LoopConfig as LoopConfig
@@ -25,7 +26,6 @@ from ._loops import find_revisits as find_revisits
 from ._pipeline import SlamConfig as SlamConfig
 from ._pipeline import SlamResult as SlamResult
 from ._pipeline import front_end_pose_graph as front_end_pose_graph
-from ._pipeline import odometry_sigmas as odometry_sigmas
 from ._pipeline import run_slam as run_slam
 from ._pose_graph import PoseGraphResult as PoseGraphResult
 from ._pose_graph import optimize_pose_graph as optimize_pose_graph

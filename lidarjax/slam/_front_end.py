@@ -46,6 +46,7 @@ __all__ = [
     "MATCHING_MODELS",
     "MatchResult",
     "match_scan",
+    "odometry_sigmas",
     "run_front_end",
 ]
 
@@ -637,6 +638,21 @@ class FrontEndResult:
     plausible: np.ndarray | None = None
 
 
+def odometry_sigmas(increments: np.ndarray, cfg: FrontEndConfig) -> np.ndarray:
+    """``[E 3]`` standard deviations (m, m, rad) of ``[E 3]`` odometry increments under the
+    front end's noise model (``cfg.odometry_sigma_*``): the front end's prior on each
+    increment, and the weights of the pose graph's and the back ends' odometry factors."""
+    inc = np.asarray(increments, float)
+    d = np.hypot(inc[:, 0], inc[:, 1])
+    sxy = cfg.odometry_sigma_xy_m + cfg.odometry_sigma_rel * d
+    syaw = (
+        cfg.odometry_sigma_yaw_rad
+        + cfg.odometry_sigma_yaw_per_m * d
+        + cfg.odometry_sigma_yaw_rel * np.abs(inc[:, 2])
+    )
+    return np.stack([sxy, sxy, syaw], 1)
+
+
 def _check_inputs(ranges_m, azimuths_rad, odometry_xy_yaw):
     rng = np.asarray(ranges_m, dtype=float)
     az = np.asarray(azimuths_rad, dtype=float)
@@ -696,6 +712,7 @@ def run_front_end(
     grid.add_scan(poses[0], az, rng[0])
     secs[0] = time.perf_counter() - t_start
     inc = between_np(odo[:-1], odo[1:])
+    sigmas = odometry_sigmas(inc, cfg)  # the prior of each match
     it = range(1, n)
     if progress:
         from tqdm.auto import tqdm
@@ -704,14 +721,7 @@ def run_front_end(
     for k in it:
         t0 = time.perf_counter()
         pred = compose_np(poses[k - 1], inc[k - 1])
-        d = float(np.hypot(*inc[k - 1, :2]))
-        sxy = cfg.odometry_sigma_xy_m + cfg.odometry_sigma_rel * d
-        syaw = (
-            cfg.odometry_sigma_yaw_rad
-            + cfg.odometry_sigma_yaw_per_m * d
-            + cfg.odometry_sigma_yaw_rel * abs(float(inc[k - 1, 2]))
-        )
-        m = match_scan(grid, az, rng[k], pred, cfg, prior_sigmas=(sxy, sxy, syaw))
+        m = match_scan(grid, az, rng[k], pred, cfg, prior_sigmas=sigmas[k - 1])
         poses[k], n_used[k] = m.pose, m.n_used
         info[k], plausible[k] = m.information, m.plausible
         grid.add_scan(poses[k], az, rng[k])

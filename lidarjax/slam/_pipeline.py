@@ -23,11 +23,17 @@ import time
 import numpy as np
 
 from ._back_end import BackEndConfig, BackEndResult, optimize_alternating, optimize_joint
-from ._front_end import FrontEndConfig, _check_inputs, between_np, run_front_end
+from ._front_end import (
+    FrontEndConfig,
+    _check_inputs,
+    between_np,
+    odometry_sigmas,
+    run_front_end,
+)
 from ._loops import LoopConfig, Loops, find_loops, find_revisits
 from ._pose_graph import PoseGraphResult, optimize_pose_graph
 
-__all__ = ["SlamConfig", "SlamResult", "front_end_pose_graph", "odometry_sigmas", "run_slam"]
+__all__ = ["SlamConfig", "SlamResult", "front_end_pose_graph", "run_slam"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -158,20 +164,6 @@ class SlamResult:
     front_end_n_used: np.ndarray | None = None
     front_end_information: np.ndarray | None = None
     front_end_plausible: np.ndarray | None = None
-
-
-def odometry_sigmas(increments: np.ndarray, cfg: FrontEndConfig) -> np.ndarray:
-    """``[E 3]`` standard deviations (m, m, rad) of ``[E 3]`` odometry increments under the
-    front end's noise model (``cfg.odometry_sigma_*``)."""
-    inc = np.asarray(increments, float)
-    d = np.hypot(inc[:, 0], inc[:, 1])
-    sxy = cfg.odometry_sigma_xy_m + cfg.odometry_sigma_rel * d
-    syaw = (
-        cfg.odometry_sigma_yaw_rad
-        + cfg.odometry_sigma_yaw_per_m * d
-        + cfg.odometry_sigma_yaw_rel * np.abs(inc[:, 2])
-    )
-    return np.stack([sxy, sxy, syaw], 1)
 
 
 def front_end_pose_graph(

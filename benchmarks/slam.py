@@ -12,7 +12,10 @@ the front end's increments and its loop closures
 (:func:`lidarjax.slam.front_end_pose_graph`: the plain chain, and the robust chain with the
 odometry and the revisits; best of 3 after a compiling call), and one call each of
 :func:`lidarjax.slam.optimize_joint` and :func:`lidarjax.slam.optimize_alternating`
-(``--steps`` L-BFGS iterations; seconds per iteration, after a compiling call). Front-end
+(``--steps`` L-BFGS iterations; seconds per iteration, after a compiling call). The
+decay-rate front end runs twice, with the optical depth from the native kernel (the
+default where it is built) and from the pure-JAX path, and one scan's objective (value and
+gradient in the pose) is timed on both. Front-end
 scans/s leave out the first two scans (the first match compiles; reported as
 ``first_scan_s``). The 1-minute load average is recorded before every timing. Writes
 ``benchmarks/results/slam.json``.
@@ -32,6 +35,7 @@ from _harness import RESULTS, machine_info, write_json
 from lidarjax import slam
 from lidarjax.datasets import fetch, load_carmen
 from lidarjax.metrics import cross_visit_distance
+from lidarjax.raytrace import _native
 from lidarjax.sim import wheel_odometry
 from lidarjax.slam._front_end import between_np
 
@@ -81,6 +85,58 @@ def time_front_end(ranges, az, odo, cfg, rate):
     return record, fe
 
 
+def time_scan_objective(ranges, az, poses, k: int = 30, reps: int = 200):
+    """Milliseconds per value-and-gradient of one scan's decay-rate log-likelihood in its
+    pose (the front end's BFGS objective: the last stage, scan ``k`` on the map of the
+    scans before it, float32 as the front end), native kernel and JAX path in the same
+    run, each the best of 3 blocks of ``reps`` calls after a compiling call."""
+    import jax
+    import jax.numpy as jnp
+
+    from lidarjax.maps import DecayRateMap, SmoothDecayRateField
+    from lidarjax.raytrace import GridSpec
+    from lidarjax.slam._front_end import GridMap, _scan_log_likelihoods, se2
+
+    cfg = slam.FrontEndConfig()
+    grid = GridMap(cfg.resolution_m, cfg.range_cap_m)
+    for j in range(k):
+        grid.add_scan(poses[j], az, ranges[j])
+    h, r, origin = grid.window(poses[k][:2], cfg.window_cells)
+    rates = np.where(r > 1e-9, h / np.maximum(r, 1e-9), 0.0).astype(np.float32)
+    n = rates.shape[0]
+    spec = GridSpec(jnp.asarray(origin, jnp.float32), cfg.resolution_m, (n, n))
+    grid_map = DecayRateMap(spec, jnp.asarray(rates), jnp.float32(0.0))
+    azj = jnp.asarray(az, jnp.float32)
+    rj = jnp.asarray(np.minimum(ranges[k], cfg.range_cap_m), jnp.float32)
+    gap = cfg.gap_cells * cfg.resolution_m
+    p0 = jnp.asarray(poses[k], jnp.float32)
+    out = {"rays": int(az.shape[0]), "nodes_per_ray": cfg.n_nodes, "cells": int(n * n)}
+    for backend in ("native", "jax"):
+        if backend == "native" and not _native.available():
+            continue
+        field = SmoothDecayRateField(grid_map, n_nodes=cfg.n_nodes, backend=backend)
+
+        def objective(p, field=field):
+            return jnp.sum(_scan_log_likelihoods(field, se2(p), azj, rj, cfg, gap))
+
+        vg = jax.jit(jax.value_and_grad(objective))
+        jax.block_until_ready(vg(p0))
+        load = os.getloadavg()[0]
+        best = np.inf
+        for _ in range(3):
+            t = time.perf_counter()
+            for i in range(reps):
+                res = vg(p0 + 1e-4 * i)
+            jax.block_until_ready(res)
+            best = min(best, (time.perf_counter() - t) / reps)
+        out[backend] = {"load_1min_before": load, "ms_per_value_and_grad": 1e3 * best}
+    if "native" in out:
+        out["native_speedup"] = (
+            out["jax"]["ms_per_value_and_grad"] / (out["native"]["ms_per_value_and_grad"])
+        )
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--logs", nargs="+", default=["intel", "fhw", "orebro"])
@@ -95,8 +151,16 @@ def main() -> None:
         for model in ("decay_rate", "endpoint"):
             cfg = slam.FrontEndConfig(model=model)
             row[f"front_end_{model}"], fe = time_front_end(ranges, az, odo, cfg, rate)
+            row[f"front_end_{model}"]["backend"] = _native.resolve(cfg.backend)
             if model == "decay_rate":
                 start = fe.poses
+        # the decay-rate front end on the pure-JAX optical depth (the fallback and
+        # oracle of the native kernel, which "auto" picks on a CPU where it is built)
+        rec, _ = time_front_end(ranges, az, odo, slam.FrontEndConfig(backend="jax"), rate)
+        rec["backend"] = "jax"
+        rec["native_speedup"] = row["front_end_decay_rate"]["scans_per_s"] / rec["scans_per_s"]
+        row["front_end_decay_rate_jax"] = rec
+        row["scan_objective"] = time_scan_objective(ranges, az, start)
         loops = slam.find_loops(ranges, az, start)
         load = os.getloadavg()[0]
         times = []

@@ -87,6 +87,12 @@ def _load() -> bool:
                             jax.ffi.pycapsule(getattr(lib, f"LidarjaxFold{dt}D{d}M{m}")),
                             platform="cpu",
                         )
+                # optical depth of a bilinear field (SmoothDecayRateField), field_integral.cc
+                jax.ffi.register_ffi_target(
+                    f"lidarjax_chord_integral_{dt.lower()}",
+                    jax.ffi.pycapsule(getattr(lib, f"LidarjaxChordIntegral{dt}")),
+                    platform="cpu",
+                )
                 # PLE+ (lidarjax.features.optimize_polylines), csrc/polyline_plus.cc
                 jax.ffi.register_ffi_target(
                     f"lidarjax_polyline_plus_{dt.lower()}",
@@ -244,4 +250,41 @@ def fold(spec, mode: int, tables, origins, directions, lengths, threads: int):
         directions.astype(dtype),
         lengths.astype(dtype),
         threads=np.int64(threads),
+    )
+
+
+def chord_integral(rates, origin, resolution, origins, directions, t0, chord, n_nodes: int):
+    """Native core of :meth:`~lidarjax.maps.SmoothDecayRateField.integral` (the chords inside
+    the grid box; ``csrc/field_integral.cc``): the midpoint rule ``F = chord / K * sum_j
+    f(o + (t0 + chord s_j) d)`` over the bilinear interpolant ``f`` of ``rates``, and its
+    derivatives in the rays.
+
+    Args:
+        rates: ``[nx ny]`` cell rates (1/m).
+        origin: ``[2]`` grid origin (m); resolution: ``[]`` cell size (m).
+        origins, directions: ``[n 2]`` ray starts (m) and unit directions.
+        t0, chord: ``[n]`` chord start along the ray and chord length (m), ``>= 0``.
+        n_nodes: midpoint nodes ``K`` per chord.
+
+    Returns:
+        ``(F [n], dF/dorigins [n 2], dF/ddirections [n 2], dF/dt0 [n], dF/dchord [n])`` in
+        the dtype of ``rates``. Non-finite rays, negative chords, or non-finite rates on a
+        ray's path are an ``XlaRuntimeError`` naming the ray.
+    """
+    dtype = rates.dtype
+    n = origins.shape[0]
+    f = jax.ShapeDtypeStruct((n,), dtype)
+    f2 = jax.ShapeDtypeStruct((n, 2), dtype)
+    call = jax.ffi.ffi_call(
+        f"lidarjax_chord_integral_{_dt(dtype)}", (f, f2, f2, f, f), vmap_method="sequential"
+    )
+    return call(
+        rates,
+        jnp.asarray(origin, dtype).reshape(2),
+        jnp.asarray(resolution, dtype).reshape(()),
+        jnp.asarray(origins, dtype),
+        jnp.asarray(directions, dtype),
+        jnp.asarray(t0, dtype),
+        jnp.asarray(chord, dtype),
+        n_nodes=np.int64(n_nodes),
     )

@@ -64,6 +64,10 @@ class BackEndConfig:
         max_steps: L-BFGS iterations (joint), or per pose step (alternating).
         rounds: alternating rounds.
         chunk_size: rays per chunk of the likelihood (memory bound).
+        backend: the optical depth of :func:`optimize_alternating`'s pose steps (the field
+            is fixed there): ``"auto"`` (the native kernel on a CPU where it is built,
+            else JAX), ``"native"`` or ``"jax"``. :func:`optimize_joint` differentiates in
+            the field too and always uses the JAX path.
     """
 
     resolution_m: float = 0.05
@@ -76,8 +80,12 @@ class BackEndConfig:
     max_steps: int = 100
     rounds: int = 3
     chunk_size: int = 8192
+    backend: str = "auto"
 
     def __post_init__(self):
+        from ..raytrace import _native
+
+        _native.check_backend(self.backend)
         for name in ("resolution_m", "range_cap_m", "prior_length_m"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
@@ -130,9 +138,11 @@ def _ml_params(spec, poses, az, ranges, cfg: BackEndConfig):
     return jnp.sqrt((h + cfg.prior_hits) / (st.lengths + cfg.prior_length_m))
 
 
-def _field(spec, params, n_nodes):
+def _field(spec, params, n_nodes, backend="jax"):
     zero = jnp.zeros((), params.dtype)
-    return SmoothDecayRateField(DecayRateMap(spec, params**2, zero), n_nodes=n_nodes)
+    return SmoothDecayRateField(
+        DecayRateMap(spec, params**2, zero), n_nodes=n_nodes, backend=backend
+    )
 
 
 def joint_objective(
@@ -146,6 +156,7 @@ def joint_objective(
     sigmas: Float[Array, "e 3"],
     spec: GridSpec,
     cfg: BackEndConfig,
+    backend: str = "jax",
 ) -> Float[Array, ""]:
     """``J`` of the module docstring (nats) at ``pose_k = pose0_k @ exp(delta_k)`` and the
     field with cell rates ``params**2``.
@@ -159,10 +170,12 @@ def joint_objective(
             ``pose_i^-1 pose_j``; sigmas: ``[e 3]`` their standard deviations (m, m, rad).
         spec: the field's grid.
         cfg: settings.
+        backend: the optical depth's backend (``"jax"``: differentiable in ``params``;
+            ``"native"`` / ``"auto"``: in ``deltas`` only, to first order).
     """
     poses = jaxlie.manifold.rplus(_se2(poses0), deltas)
     rays = from_scan(poses, azimuths, ranges, 0.0, cfg.range_cap_m)
-    field = _field(spec, params, cfg.n_nodes)
+    field = _field(spec, params, cfg.n_nodes, backend)
     ll = field_log_likelihood(field, rays, chunk_size=cfg.chunk_size, rate_floor=cfg.rate_floor)
     data = jnp.sum(jnp.maximum(ll, cfg.ray_floor))
     if edges.shape[0] == 0:
@@ -353,7 +366,8 @@ def optimize_alternating(
 
     def fn(d, th_poses):  # one function for every round: compiled once
         th, poses = th_poses
-        return -joint_objective(d * free, th, poses, azj, rgj, ej, mj, sj, spec, cfg) / scale
+        j = joint_objective(d * free, th, poses, azj, rgj, ej, mj, sj, spec, cfg, cfg.backend)
+        return -j / scale
 
     t0 = time.perf_counter()
     poses = p0

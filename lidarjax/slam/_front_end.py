@@ -156,6 +156,13 @@ class FrontEndConfig:
             5: - / 1.425 / 1.122 m (a gate of 5 rejects fhw's correct snaps back onto
             the map).
         gate_stiffness: see ``gate_sigmas`` (>= 1).
+        backend: which code integrates the rays' optical depth in the matching stages:
+            ``"auto"`` (the default: the native C++ kernel on a CPU when it is built, else
+            the pure-JAX path), ``"native"`` or ``"jax"`` (see
+            :class:`~lidarjax.maps.SmoothDecayRateField`). Both compute the same midpoint
+            rule; the native kernel sums in double, so float32 matches differ from the JAX
+            path's by round-off (and a chaotic log's trajectory by more, see the results
+            page). The match's information is always the JAX path's.
         ambiguous_margin, ambiguous_gate_sigmas: where the search's best score beats its
             runner-up (the best lattice pose farther than ``search_exclude_m``) by less
             than ``ambiguous_margin`` nats, the scene is ambiguous (a corridor seen
@@ -198,6 +205,7 @@ class FrontEndConfig:
     gate_stiffness: float = 3.0
     ambiguous_margin: float = 15.0
     ambiguous_gate_sigmas: float = 3.0
+    backend: str = "auto"
 
     def __post_init__(self):
         for name in (
@@ -240,6 +248,9 @@ class FrontEndConfig:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
                 raise ValueError(f"{name} must be finite and >= 0, got {v!r}")
+        from ..raytrace import _native
+
+        _native.check_backend(self.backend)
         if self.model not in MATCHING_MODELS:
             raise ValueError(f"model must be one of {MATCHING_MODELS}, got {self.model!r}")
         for name in ("n_nodes", "max_steps"):
@@ -461,7 +472,9 @@ def _match_impl(rates, seen, origin, az, rng, pose0, pred, sigmas, cfg: FrontEnd
         if cfg.model == "endpoint":
             b = max(b, res / 2)  # a likelihood field needs some width
         field = SmoothDecayRateField(
-            DecayRateMap(spec, blur(rates, b / res), zero), n_nodes=cfg.n_nodes
+            DecayRateMap(spec, blur(rates, b / res), zero),
+            n_nodes=cfg.n_nodes,
+            backend=cfg.backend,
         )
         gap = cfg.gap_cells * res + 2.0 * b
 
@@ -509,9 +522,13 @@ def _match_impl(rates, seen, origin, az, rng, pose0, pred, sigmas, cfg: FrontEnd
 
     pose = jaxlie.SE2(jax.lax.cond(ok, lambda: pick, stiff_fallback))
 
+    # the match's score and information on the JAX path (the native kernel's derivatives
+    # are first order)
+    jax_field = field.with_backend("jax")
+
     def data_term(delta):
         p = jaxlie.manifold.rplus(pose, delta)
-        return jnp.sum(w * _scan_log_likelihoods(field, p, az, rng, cfg, cfg.gap_cells * res))
+        return jnp.sum(w * _scan_log_likelihoods(jax_field, p, az, rng, cfg, cfg.gap_cells * res))
 
     d0 = jnp.zeros(3, rates.dtype)
     n_used = jnp.sum(w)

@@ -1,0 +1,321 @@
+// Native CPU kernel of the optical depth of a bilinear decay-rate field along rays, with its
+// derivatives in the rays: the inner part of SmoothDecayRateField.integral
+// (lidarjax/maps/_smooth_field.py), the scan matcher's hot loop (issue #24's front end).
+//
+// For ray k with origin o, unit direction d, chord start t0 and chord length c, and the
+// midpoint nodes s_j = (j + 1/2) / K (j = 0 .. K - 1):
+//
+//   p_j = o + (t0 + c s_j) d,     F = (c / K) sum_j f(p_j)
+//
+// where f is the bilinear interpolant of the cell rates at the cell centres, border cells
+// clamped (SmoothDecayRateField._interpolate: u = (p - origin) / res - 1/2, i = floor(u),
+// weights u - i, indices clipped to the grid). With g_j = grad f(p_j) (per m; the slope of
+// the bilinear patch the node lies in, as JAX's autodiff of the interpolant gives it: the
+// floor has derivative 0) the kernel also returns
+//
+//   dF/do  = (c / K) sum_j g_j
+//   dF/dd  = (c / K) sum_j (t0 + c s_j) g_j
+//   dF/dt0 = (c / K) sum_j g_j . d
+//   dF/dc  = (1 / K) sum_j f(p_j) + (c / K) sum_j s_j g_j . d
+//
+// Node positions are computed in the input precision T with the JAX path's operation order
+// (so a node falls in the same cell as there up to round-off at a lattice line); the sums
+// are accumulated in double for float32 input too, which makes the float32 result more
+// accurate than the JAX path's float32 reduction (they agree to its round-off). The rays
+// are processed one after the other on the calling thread: one scan's 180-1000 rays are
+// under a millisecond of work, and XLA's thread pool is busy with the caller's own ops.
+// Every loop is bounded by the ray count times K. Non-finite inputs are an error naming the
+// argument (never a silent NaN); the rates are checked on the patches the nodes read.
+
+#include <cmath>
+#include <cstdint>
+#include <string>
+#include <type_traits>
+#include <vector>
+
+#if defined(__AVX2__)
+#include <immintrin.h>
+#endif
+
+#include "xla/ffi/api/ffi.h"
+
+namespace ffi = xla::ffi;
+
+namespace {
+
+ffi::Error bad(const std::string& what) {
+  return ffi::Error(ffi::ErrorCode::kInvalidArgument, what);
+}
+
+struct Sums {
+  double f, gx, gy, tgx, tgy, sgd;
+};
+
+template <typename T>
+inline void ray_sums(const T* rates, int64_t nx, int64_t ny, T ox0, T oy0, T inv_res, T ox,
+                     T oy, T dx, T dy, T t0, T c, const T* s_nodes, int64_t K, Sums& out) {
+  double f = 0, gx = 0, gy = 0, tgx = 0, tgy = 0, sgd = 0;
+  const double dinv_res = static_cast<double>(inv_res);
+  for (int64_t j = 0; j < K; ++j) {
+    const T s = s_nodes[j];
+    const T t = t0 + c * s;
+    const T ux = (ox + t * dx - ox0) * inv_res - T(0.5);
+    const T uy = (oy + t * dy - oy0) * inv_res - T(0.5);
+    // floor without a libm call (not inlined without SSE4.1): truncation, then one down
+    // for negative non-integers; exact because |u| < 2^52 (the handler's reach check)
+    int64_t i = static_cast<int64_t>(ux);
+    i -= static_cast<T>(i) > ux ? 1 : 0;
+    int64_t jj = static_cast<int64_t>(uy);
+    jj -= static_cast<T>(jj) > uy ? 1 : 0;
+    const double wx = static_cast<double>(ux - static_cast<T>(i));
+    const double wy = static_cast<double>(uy - static_cast<T>(jj));
+    // clipped indices (the clamped border)
+    const int64_t i0 = i < 0 ? 0 : (i > nx - 1 ? nx - 1 : i);
+    const int64_t i1 = i + 1 < 0 ? 0 : (i + 1 > nx - 1 ? nx - 1 : i + 1);
+    const int64_t j0 = jj < 0 ? 0 : (jj > ny - 1 ? ny - 1 : jj);
+    const int64_t j1 = jj + 1 < 0 ? 0 : (jj + 1 > ny - 1 ? ny - 1 : jj + 1);
+    const T* r0 = rates + i0 * ny;
+    const T* r1 = rates + i1 * ny;
+    const double a00 = r0[j0], a10 = r1[j0], a01 = r0[j1], a11 = r1[j1];
+    const double bx0 = a10 - a00, bx1 = a11 - a01;  // slopes along x at y-rows j0, j1
+    const double v0 = a00 + wx * bx0, v1 = a01 + wx * bx1;
+    const double dfx = (bx0 + wy * (bx1 - bx0)) * dinv_res;
+    const double dfy = (v1 - v0) * dinv_res;
+    f += v0 + wy * (v1 - v0);
+    gx += dfx;
+    gy += dfy;
+    tgx += static_cast<double>(t) * dfx;
+    tgy += static_cast<double>(t) * dfy;
+    sgd += static_cast<double>(s) * (dfx * static_cast<double>(dx) + dfy * static_cast<double>(dy));
+  }
+  out.f = f;
+  out.gx = gx;
+  out.gy = gy;
+  out.tgx = tgx;
+  out.tgy = tgy;
+  out.sgd = sgd;
+}
+
+#if defined(__AVX2__)
+// float32 with AVX2 (the library variant the loader picks on such CPUs): 8 nodes of a ray
+// per step, the same operations in float as the scalar path's node positions and the JAX
+// path's interpolant, the cell values fetched by gathers; the per-lane float sums are
+// flushed into the double sums every 64 nodes (8 steps), so the float32 rounding of a sum
+// covers at most 8 terms. Needs int32 cell indices: the handler checks the reach
+// (< 2^30 cells) and nx * ny < 2^31 before choosing it; the node count's remainder
+// (K mod 8) goes through the scalar loop.
+inline double hsum(__m256 v) {
+  __m256d lo = _mm256_cvtps_pd(_mm256_castps256_ps128(v));
+  __m256d hi = _mm256_cvtps_pd(_mm256_extractf128_ps(v, 1));
+  __m256d s = _mm256_add_pd(lo, hi);
+  __m128d a = _mm_add_pd(_mm256_castpd256_pd128(s), _mm256_extractf128_pd(s, 1));
+  return _mm_cvtsd_f64(a) + _mm_cvtsd_f64(_mm_unpackhi_pd(a, a));
+}
+
+inline void ray_sums_avx2(const float* rates, int64_t nx, int64_t ny, float ox0, float oy0,
+                          float inv_res, float ox, float oy, float dx, float dy, float t0,
+                          float c, const float* s_nodes, int64_t K, Sums& out) {
+  const int64_t K8 = K - K % 8;
+  double f = 0, gx = 0, gy = 0, tgx = 0, tgy = 0, sgd = 0;
+  const __m256 vt0 = _mm256_set1_ps(t0), vc = _mm256_set1_ps(c);
+  const __m256 vox = _mm256_set1_ps(ox), voy = _mm256_set1_ps(oy);
+  const __m256 vdx = _mm256_set1_ps(dx), vdy = _mm256_set1_ps(dy);
+  const __m256 vox0 = _mm256_set1_ps(ox0), voy0 = _mm256_set1_ps(oy0);
+  const __m256 vinv = _mm256_set1_ps(inv_res), half = _mm256_set1_ps(0.5f);
+  const __m256i zero = _mm256_setzero_si256(), one = _mm256_set1_epi32(1);
+  const __m256i xmax = _mm256_set1_epi32(static_cast<int32_t>(nx - 1));
+  const __m256i ymax = _mm256_set1_epi32(static_cast<int32_t>(ny - 1));
+  const __m256i vny = _mm256_set1_epi32(static_cast<int32_t>(ny));
+  int64_t j = 0;
+  while (j < K8) {
+    __m256 F = _mm256_setzero_ps(), GX = F, GY = F, TGX = F, TGY = F, SGD = F;
+    const int64_t stop = j + 64 < K8 ? j + 64 : K8;
+    for (; j < stop; j += 8) {
+      const __m256 vs = _mm256_loadu_ps(s_nodes + j);
+      const __m256 t = _mm256_add_ps(vt0, _mm256_mul_ps(vc, vs));
+      const __m256 ux = _mm256_sub_ps(
+          _mm256_mul_ps(_mm256_sub_ps(_mm256_add_ps(vox, _mm256_mul_ps(t, vdx)), vox0), vinv),
+          half);
+      const __m256 uy = _mm256_sub_ps(
+          _mm256_mul_ps(_mm256_sub_ps(_mm256_add_ps(voy, _mm256_mul_ps(t, vdy)), voy0), vinv),
+          half);
+      // floor: truncate, then one down where the truncation rounded up
+      __m256i i = _mm256_cvttps_epi32(ux);
+      i = _mm256_add_epi32(
+          i, _mm256_castps_si256(_mm256_cmp_ps(_mm256_cvtepi32_ps(i), ux, _CMP_GT_OQ)));
+      __m256i jj = _mm256_cvttps_epi32(uy);
+      jj = _mm256_add_epi32(
+          jj, _mm256_castps_si256(_mm256_cmp_ps(_mm256_cvtepi32_ps(jj), uy, _CMP_GT_OQ)));
+      const __m256 wx = _mm256_sub_ps(ux, _mm256_cvtepi32_ps(i));
+      const __m256 wy = _mm256_sub_ps(uy, _mm256_cvtepi32_ps(jj));
+      const __m256i i0 = _mm256_max_epi32(zero, _mm256_min_epi32(xmax, i));
+      const __m256i i1 = _mm256_max_epi32(zero, _mm256_min_epi32(xmax, _mm256_add_epi32(i, one)));
+      const __m256i j0 = _mm256_max_epi32(zero, _mm256_min_epi32(ymax, jj));
+      const __m256i j1 =
+          _mm256_max_epi32(zero, _mm256_min_epi32(ymax, _mm256_add_epi32(jj, one)));
+      const __m256i r0 = _mm256_mullo_epi32(i0, vny), r1 = _mm256_mullo_epi32(i1, vny);
+      const __m256 a00 = _mm256_i32gather_ps(rates, _mm256_add_epi32(r0, j0), 4);
+      const __m256 a10 = _mm256_i32gather_ps(rates, _mm256_add_epi32(r1, j0), 4);
+      const __m256 a01 = _mm256_i32gather_ps(rates, _mm256_add_epi32(r0, j1), 4);
+      const __m256 a11 = _mm256_i32gather_ps(rates, _mm256_add_epi32(r1, j1), 4);
+      const __m256 bx0 = _mm256_sub_ps(a10, a00), bx1 = _mm256_sub_ps(a11, a01);
+      const __m256 v0 = _mm256_add_ps(a00, _mm256_mul_ps(wx, bx0));
+      const __m256 v1 = _mm256_add_ps(a01, _mm256_mul_ps(wx, bx1));
+      const __m256 dv = _mm256_sub_ps(v1, v0);
+      const __m256 dfx =
+          _mm256_mul_ps(_mm256_add_ps(bx0, _mm256_mul_ps(wy, _mm256_sub_ps(bx1, bx0))), vinv);
+      const __m256 dfy = _mm256_mul_ps(dv, vinv);
+      F = _mm256_add_ps(F, _mm256_add_ps(v0, _mm256_mul_ps(wy, dv)));
+      GX = _mm256_add_ps(GX, dfx);
+      GY = _mm256_add_ps(GY, dfy);
+      TGX = _mm256_add_ps(TGX, _mm256_mul_ps(t, dfx));
+      TGY = _mm256_add_ps(TGY, _mm256_mul_ps(t, dfy));
+      SGD = _mm256_add_ps(
+          SGD, _mm256_mul_ps(vs, _mm256_add_ps(_mm256_mul_ps(dfx, vdx), _mm256_mul_ps(dfy, vdy))));
+    }
+    f += hsum(F);
+    gx += hsum(GX);
+    gy += hsum(GY);
+    tgx += hsum(TGX);
+    tgy += hsum(TGY);
+    sgd += hsum(SGD);
+  }
+  Sums rest{0, 0, 0, 0, 0, 0};
+  if (K8 < K)
+    ray_sums<float>(rates, nx, ny, ox0, oy0, inv_res, ox, oy, dx, dy, t0, c, s_nodes + K8,
+                    K - K8, rest);
+  out.f = f + rest.f;
+  out.gx = gx + rest.gx;
+  out.gy = gy + rest.gy;
+  out.tgx = tgx + rest.tgx;
+  out.tgy = tgy + rest.tgy;
+  out.sgd = sgd + rest.sgd;
+}
+#endif
+
+template <ffi::DataType DT>
+ffi::Error ChordIntegral(ffi::Buffer<DT> rates, ffi::Buffer<DT> origin, ffi::Buffer<DT> res_buf,
+                         ffi::Buffer<DT> origins, ffi::Buffer<DT> directions,
+                         ffi::Buffer<DT> t0s, ffi::Buffer<DT> chords, int64_t n_nodes,
+                         ffi::ResultBuffer<DT> value, ffi::ResultBuffer<DT> d_origins,
+                         ffi::ResultBuffer<DT> d_directions, ffi::ResultBuffer<DT> d_t0,
+                         ffi::ResultBuffer<DT> d_chord) {
+  using T = ffi::NativeType<DT>;
+  auto rd = rates.dimensions();
+  if (rd.size() != 2 || rd[0] < 1 || rd[1] < 1) return bad("rates must be [nx ny], nx, ny >= 1");
+  const int64_t nx = rd[0], ny = rd[1];
+  if (origin.element_count() != 2) return bad("origin must be [2]");
+  if (res_buf.element_count() != 1) return bad("resolution must be a scalar");
+  auto od = origins.dimensions();
+  if (od.size() != 2 || od[1] != 2) return bad("origins must be [n 2]");
+  const int64_t n = od[0];
+  if (static_cast<int64_t>(directions.element_count()) != 2 * n)
+    return bad("directions must be [n 2] like origins");
+  if (static_cast<int64_t>(t0s.element_count()) != n ||
+      static_cast<int64_t>(chords.element_count()) != n)
+    return bad("t0 and chord must be [n]");
+  if (n_nodes < 1) return bad("n_nodes must be >= 1");
+  const T* R = rates.typed_data();
+  const T ox0 = origin.typed_data()[0], oy0 = origin.typed_data()[1];
+  const T res = res_buf.typed_data()[0];
+  if (!(std::isfinite(ox0) && std::isfinite(oy0))) return bad("origin must be finite");
+  if (!(std::isfinite(res) && res > 0)) return bad("resolution must be positive and finite");
+  const T* O = origins.typed_data();
+  const T* D = directions.typed_data();
+  const T* T0 = t0s.typed_data();
+  const T* C = chords.typed_data();
+  // the nodes stay within the chord, so |u| is bounded by the rays' reach over res; a
+  // reach beyond 2^52 cells (int64 floor overflow) is rejected
+  const double limit = 4.0e15;
+  std::vector<double> reach(static_cast<size_t>(n));
+  for (int64_t k = 0; k < n; ++k) {
+    const T v[6] = {O[2 * k], O[2 * k + 1], D[2 * k], D[2 * k + 1], T0[k], C[k]};
+    for (int q = 0; q < 6; ++q) {
+      if (!std::isfinite(v[q])) {
+        const char* what = q < 2 ? "origins" : (q < 4 ? "directions" : (q == 4 ? "t0" : "chord"));
+        return bad(std::string("non-finite ") + what + " at ray " + std::to_string(k));
+      }
+    }
+    if (C[k] < 0 || T0[k] < 0)
+      return bad("negative t0 or chord at ray " + std::to_string(k));
+    reach[k] = (std::fabs(static_cast<double>(O[2 * k])) +
+                          std::fabs(static_cast<double>(O[2 * k + 1])) +
+                          (static_cast<double>(T0[k]) + static_cast<double>(C[k])) *
+                              (std::fabs(static_cast<double>(D[2 * k])) +
+                               std::fabs(static_cast<double>(D[2 * k + 1]))) +
+                          std::fabs(static_cast<double>(ox0)) + std::fabs(static_cast<double>(oy0))) /
+                         static_cast<double>(res);
+    if (!(reach[k] < limit)) return bad("ray " + std::to_string(k) + " reaches too far for the grid");
+  }
+  T* V = value->typed_data();
+  T* GO = d_origins->typed_data();
+  T* GD = d_directions->typed_data();
+  T* GT = d_t0->typed_data();
+  T* GC = d_chord->typed_data();
+  Sums s;
+#if defined(__AVX2__)
+  // the vector path's int32 indices: cells and reach (in cells) below 2^31 and 2^30
+  const bool vector_ok = nx * ny < (int64_t(1) << 31);
+  constexpr double kVectorReach = double(int64_t(1) << 30);
+#endif
+  // the nodes' fractions as the JAX path computes them, (j + 1/2) / K in T
+  std::vector<T> s_nodes(static_cast<size_t>(n_nodes));
+  for (int64_t j = 0; j < n_nodes; ++j)
+    s_nodes[j] = (static_cast<T>(j) + T(0.5)) / static_cast<T>(n_nodes);
+  const T inv_res = T(1) / res;
+  const double inv_k = 1.0 / static_cast<double>(n_nodes);
+  for (int64_t k = 0; k < n; ++k) {
+    const T dx = D[2 * k], dy = D[2 * k + 1], t0 = T0[k], c = C[k];
+#if defined(__AVX2__)
+    if constexpr (std::is_same_v<T, float>) {
+      if (vector_ok && reach[k] < kVectorReach) {
+        ray_sums_avx2(R, nx, ny, ox0, oy0, inv_res, O[2 * k], O[2 * k + 1], dx, dy, t0, c,
+                      s_nodes.data(), n_nodes, s);
+      } else {
+        ray_sums<T>(R, nx, ny, ox0, oy0, inv_res, O[2 * k], O[2 * k + 1], dx, dy, t0, c,
+                    s_nodes.data(), n_nodes, s);
+      }
+    } else
+#endif
+    {
+      ray_sums<T>(R, nx, ny, ox0, oy0, inv_res, O[2 * k], O[2 * k + 1], dx, dy, t0, c,
+                  s_nodes.data(), n_nodes, s);
+    }
+    // the rates are checked where they are read (a whole-grid check would cost more than
+    // the integral): a NaN or infinite rate on a node's patch makes the sums non-finite
+    if (!(std::isfinite(s.f) && std::isfinite(s.gx) && std::isfinite(s.gy)))
+      return bad("non-finite rates on the path of ray " + std::to_string(k));
+    const double w = static_cast<double>(c) * inv_k;
+    const double gd = s.gx * static_cast<double>(dx) + s.gy * static_cast<double>(dy);
+    V[k] = static_cast<T>(w * s.f);
+    GO[2 * k] = static_cast<T>(w * s.gx);
+    GO[2 * k + 1] = static_cast<T>(w * s.gy);
+    GD[2 * k] = static_cast<T>(w * s.tgx);
+    GD[2 * k + 1] = static_cast<T>(w * s.tgy);
+    GT[k] = static_cast<T>(w * gd);
+    GC[k] = static_cast<T>(inv_k * s.f + w * s.sgd);
+  }
+  return ffi::Error::Success();
+}
+
+}  // namespace
+
+#define LIDARJAX_CHORD(NAME, DT)                                  \
+  XLA_FFI_DEFINE_HANDLER_SYMBOL(NAME, (ChordIntegral<DT>),        \
+                                ffi::Ffi::Bind()                  \
+                                    .Arg<ffi::Buffer<DT>>()       \
+                                    .Arg<ffi::Buffer<DT>>()       \
+                                    .Arg<ffi::Buffer<DT>>()       \
+                                    .Arg<ffi::Buffer<DT>>()       \
+                                    .Arg<ffi::Buffer<DT>>()       \
+                                    .Arg<ffi::Buffer<DT>>()       \
+                                    .Arg<ffi::Buffer<DT>>()       \
+                                    .Attr<int64_t>("n_nodes")     \
+                                    .Ret<ffi::Buffer<DT>>()       \
+                                    .Ret<ffi::Buffer<DT>>()       \
+                                    .Ret<ffi::Buffer<DT>>()       \
+                                    .Ret<ffi::Buffer<DT>>()       \
+                                    .Ret<ffi::Buffer<DT>>());
+
+LIDARJAX_CHORD(LidarjaxChordIntegralF32, ffi::F32)
+LIDARJAX_CHORD(LidarjaxChordIntegralF64, ffi::F64)

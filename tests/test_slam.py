@@ -1199,6 +1199,11 @@ def test_trajectory_log_likelihood_ranks_the_truth_above_misplaced_visits(office
     # measured: 1.881 / 1.804 / 1.762 nats per ray; 1.246 with 3 cm / 0.3 deg of noise
     # per pose
     assert np.isfinite(list(ll.values())).all()
+    # the default backend (native where built) and the JAX path give the same score
+    cfg_jax = BackEndConfig(range_cap_m=10.0, backend="jax")
+    assert trajectory_log_likelihood(truth, AZ, ranges, cfg_jax) == pytest.approx(
+        ll[0.0], rel=1e-10
+    )
     assert ll[0.0] - ll[0.05] > 0.04 and ll[0.05] - ll[0.15] > 0.02
     assert ll[0.0] > ll_noisy + 0.4
     # a rigid motion of the whole trajectory changes the score by little (the grid is

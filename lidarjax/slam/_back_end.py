@@ -65,9 +65,10 @@ class BackEndConfig:
         rounds: alternating rounds.
         chunk_size: rays per chunk of the likelihood (memory bound).
         backend: the optical depth of :func:`optimize_alternating`'s pose steps (the field
-            is fixed there): ``"auto"`` (the native kernel on a CPU where it is built,
-            else JAX), ``"native"`` or ``"jax"``. :func:`optimize_joint` differentiates in
-            the field too and always uses the JAX path.
+            is fixed there) and of :func:`trajectory_log_likelihood`: ``"auto"`` (the
+            native kernel on a CPU where it is built, else JAX), ``"native"`` or
+            ``"jax"``. :func:`optimize_joint` differentiates in the field too and always
+            uses the JAX path.
     """
 
     resolution_m: float = 0.05
@@ -297,7 +298,8 @@ def trajectory_log_likelihood(
     for q in moved:
         qj = jnp.asarray(q, dt)
         theta = _ml_params(spec, qj, az, rg, cfg)
-        total += float(joint_objective(jnp.zeros_like(qj), theta, qj, az, rg, e, m, s, spec, cfg))
+        d0 = jnp.zeros_like(qj)
+        total += float(joint_objective(d0, theta, qj, az, rg, e, m, s, spec, cfg, cfg.backend))
     return total / (grid_shifts * rg_np.size)
 
 

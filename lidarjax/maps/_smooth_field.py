@@ -38,14 +38,7 @@ def _native_chord_impl(n_nodes, rates, origin, resolution, origins, directions, 
     )
 
 
-@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
-def _native_chord(n_nodes, rates, origin, resolution, origins, directions, t0, chord):
-    """``[n]`` optical depths of the chords ``[t0, t0 + chord]`` by the native kernel,
-    differentiable (forward and reverse mode, first order) in the rays, not in the grid."""
-    return _native_chord_impl(n_nodes, rates, origin, resolution, origins, directions, t0, chord)[0]
-
-
-def _native_chord_jvp(n_nodes, primals, tangents):
+def _grid_tangents_are_zero(tangents):
     from jax.custom_derivatives import SymbolicZero
 
     for name, t in zip(("rates", "grid origin", "resolution"), tangents[:3]):
@@ -55,18 +48,60 @@ def _native_chord_jvp(n_nodes, primals, tangents):
                 f"rays only, not in the {name}: build the field with backend='jax' to "
                 "differentiate in the grid"
             )
-    value, g_o, g_d, g_t0, g_c = _native_chord_impl(n_nodes, *primals)
-    tan = jnp.zeros_like(value)
-    for g, t in ((g_o, tangents[3]), (g_d, tangents[4])):
-        if not isinstance(t, SymbolicZero):
-            tan = tan + jnp.sum(g * t, axis=-1)
-    for g, t in ((g_t0, tangents[5]), (g_c, tangents[6])):
-        if not isinstance(t, SymbolicZero):
-            tan = tan + g * t
-    return value, tan
+
+
+def _ray_tangents(primals, tangents):
+    """``[n 6]`` tangents of the ray parameters ``(o_x, o_y, d_x, d_y, t0, chord)``
+    (symbolic zeros materialised)."""
+    from jax.custom_derivatives import SymbolicZero
+
+    cols = []
+    for p, t in zip(primals[3:], tangents[3:]):
+        t = jnp.zeros_like(p) if isinstance(t, SymbolicZero) else t
+        cols.append(t if t.ndim == 2 else t[:, None])
+    return jnp.concatenate(cols, axis=1)
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
+def _native_chord(n_nodes, rates, origin, resolution, origins, directions, t0, chord):
+    """``[n]`` optical depths of the chords ``[t0, t0 + chord]`` by the native kernel,
+    differentiable (forward and reverse mode, to second order) in the rays, not in the
+    grid."""
+    return _native_chord_impl(n_nodes, rates, origin, resolution, origins, directions, t0, chord)[0]
+
+
+def _native_chord_jvp(n_nodes, primals, tangents):
+    _grid_tangents_are_zero(tangents)
+    value, g_o, g_d, g_t0, g_c = _native_chord_grads(n_nodes, *primals)
+    g = jnp.concatenate([g_o, g_d, g_t0[:, None], g_c[:, None]], axis=1)
+    return value, jnp.sum(g * _ray_tangents(primals, tangents), axis=1)
 
 
 _native_chord.defjvp(_native_chord_jvp, symbolic_zeros=True)
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
+def _native_chord_grads(n_nodes, rates, origin, resolution, origins, directions, t0, chord):
+    """``(F, dF/dorigins, dF/ddirections, dF/dt0, dF/dchord)`` by the native kernel; its
+    own derivatives (the second derivatives of ``F``) come from the Hessian kernel."""
+    return _native_chord_impl(n_nodes, rates, origin, resolution, origins, directions, t0, chord)
+
+
+def _native_chord_grads_jvp(n_nodes, primals, tangents):
+    from ..raytrace import _native
+
+    _grid_tangents_are_zero(tangents)
+    outs = _native_chord_impl(n_nodes, *primals)
+    value, g_o, g_d, g_t0, g_c = outs
+    g = jnp.concatenate([g_o, g_d, g_t0[:, None], g_c[:, None]], axis=1)
+    xdot = _ray_tangents(primals, tangents)
+    hess = _native.chord_hessian(*primals, n_nodes)
+    gdot = jnp.einsum("nab,nb->na", hess, xdot)
+    tans = (jnp.sum(g * xdot, axis=1), gdot[:, 0:2], gdot[:, 2:4], gdot[:, 4], gdot[:, 5])
+    return outs, tans
+
+
+_native_chord_grads.defjvp(_native_chord_grads_jvp, symbolic_zeros=True)
 
 
 def _check_nodes(n_nodes) -> int:
@@ -140,10 +175,10 @@ class SmoothDecayRateField(AbstractDecayRateField):
             n_nodes: midpoint nodes per ray of :meth:`integral`.
             backend: ``"jax"`` (the default; differentiable in everything, any device),
                 ``"native"`` (the C++ kernel of ``raytrace/csrc/field_integral.cc``: the same
-                midpoint rule, sums in double, 5-10 times faster on a CPU; differentiable to
-                first order in the rays only, so for pose refinement, not for fitting the
-                rates or second derivatives) or ``"auto"`` (native when available, see
-                :mod:`lidarjax.raytrace`'s backends). Resolved here, once.
+                midpoint rule, sums in double, about 10 times faster on a CPU;
+                differentiable to second order in the rays only, so for pose refinement
+                and its Hessian, not for fitting the rates) or ``"auto"`` (native when
+                available, see :mod:`lidarjax.raytrace`'s backends). Resolved here, once.
 
         Raises:
             ValueError: ``map`` is not a 2-D DecayRateMap, or a bad ``blur_m`` / ``n_nodes``
@@ -243,7 +278,7 @@ class SmoothDecayRateField(AbstractDecayRateField):
         :attr:`n_nodes` nodes over the chord ``[t0, t1]`` inside the grid box (slab test
         :func:`~lidarjax.maps._field.box_segment`) plus ``outside_rate * (r - (t1 - t0))``
         (``0 * inf := 0``). Differentiable in the rays and the rates (``backend="native"``:
-        in the rays, to first order).
+        in the rays, to second order).
 
         Args:
             origins: ``[n 2]`` ray starts (m).

@@ -93,6 +93,11 @@ def _load() -> bool:
                     jax.ffi.pycapsule(getattr(lib, f"LidarjaxChordIntegral{dt}")),
                     platform="cpu",
                 )
+                jax.ffi.register_ffi_target(
+                    f"lidarjax_chord_hessian_{dt.lower()}",
+                    jax.ffi.pycapsule(getattr(lib, f"LidarjaxChordHessian{dt}")),
+                    platform="cpu",
+                )
                 # PLE+ (lidarjax.features.optimize_polylines), csrc/polyline_plus.cc
                 jax.ffi.register_ffi_target(
                     f"lidarjax_polyline_plus_{dt.lower()}",
@@ -277,6 +282,29 @@ def chord_integral(rates, origin, resolution, origins, directions, t0, chord, n_
     f2 = jax.ShapeDtypeStruct((n, 2), dtype)
     call = jax.ffi.ffi_call(
         f"lidarjax_chord_integral_{_dt(dtype)}", (f, f2, f2, f, f), vmap_method="sequential"
+    )
+    return call(
+        rates,
+        jnp.asarray(origin, dtype).reshape(2),
+        jnp.asarray(resolution, dtype).reshape(()),
+        jnp.asarray(origins, dtype),
+        jnp.asarray(directions, dtype),
+        jnp.asarray(t0, dtype),
+        jnp.asarray(chord, dtype),
+        n_nodes=np.int64(n_nodes),
+    )
+
+
+def chord_hessian(rates, origin, resolution, origins, directions, t0, chord, n_nodes: int):
+    """Second derivatives of :func:`chord_integral`'s ``F`` per ray: ``[n 6 6]`` in the ray
+    parameters ``(o_x, o_y, d_x, d_y, t0, chord)`` (``csrc/field_integral.cc``,
+    ``ChordHessian``), in the dtype of ``rates``; arguments and errors as there."""
+    dtype = rates.dtype
+    n = origins.shape[0]
+    call = jax.ffi.ffi_call(
+        f"lidarjax_chord_hessian_{_dt(dtype)}",
+        jax.ShapeDtypeStruct((n, 6, 6), dtype),
+        vmap_method="sequential",
     )
     return call(
         rates,

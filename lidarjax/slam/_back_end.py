@@ -172,7 +172,7 @@ def joint_objective(
         spec: the field's grid.
         cfg: settings.
         backend: the optical depth's backend (``"jax"``: differentiable in ``params``;
-            ``"native"`` / ``"auto"``: in ``deltas`` only, to first order).
+            ``"native"`` / ``"auto"``: in ``deltas`` only, to second order).
     """
     poses = jaxlie.manifold.rplus(_se2(poses0), deltas)
     rays = from_scan(poses, azimuths, ranges, 0.0, cfg.range_cap_m)

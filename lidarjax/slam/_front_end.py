@@ -162,7 +162,7 @@ class FrontEndConfig:
             :class:`~lidarjax.maps.SmoothDecayRateField`). Both compute the same midpoint
             rule; the native kernel sums in double, so float32 matches differ from the JAX
             path's by round-off (and a chaotic log's trajectory by more, see the results
-            page). The match's information is always the JAX path's.
+            page).
         ambiguous_margin, ambiguous_gate_sigmas: where the search's best score beats its
             runner-up (the best lattice pose farther than ``search_exclude_m``) by less
             than ``ambiguous_margin`` nats, the scene is ambiguous (a corridor seen
@@ -522,13 +522,9 @@ def _match_impl(rates, seen, origin, az, rng, pose0, pred, sigmas, cfg: FrontEnd
 
     pose = jaxlie.SE2(jax.lax.cond(ok, lambda: pick, stiff_fallback))
 
-    # the match's score and information on the JAX path (the native kernel's derivatives
-    # are first order)
-    jax_field = field.with_backend("jax")
-
     def data_term(delta):
         p = jaxlie.manifold.rplus(pose, delta)
-        return jnp.sum(w * _scan_log_likelihoods(jax_field, p, az, rng, cfg, cfg.gap_cells * res))
+        return jnp.sum(w * _scan_log_likelihoods(field, p, az, rng, cfg, cfg.gap_cells * res))
 
     d0 = jnp.zeros(3, rates.dtype)
     n_used = jnp.sum(w)

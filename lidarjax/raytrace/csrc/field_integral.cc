@@ -193,41 +193,53 @@ inline void ray_sums_avx2(const float* rates, int64_t nx, int64_t ny, float ox0,
 }
 #endif
 
+// The inputs both handlers share, checked: shapes, a finite grid origin and a positive
+// resolution, finite rays with t0, chord >= 0, and each ray's reach in cells (bounding |u|
+// of every node) below 2^52, so the int64 floor cannot overflow.
+template <typename T>
+struct Inputs {
+  const T* R;
+  int64_t nx, ny, n;
+  T ox0, oy0, res;
+  const T *O, *D, *T0, *C;
+  std::vector<double> reach;
+};
+
 template <ffi::DataType DT>
-ffi::Error ChordIntegral(ffi::Buffer<DT> rates, ffi::Buffer<DT> origin, ffi::Buffer<DT> res_buf,
-                         ffi::Buffer<DT> origins, ffi::Buffer<DT> directions,
-                         ffi::Buffer<DT> t0s, ffi::Buffer<DT> chords, int64_t n_nodes,
-                         ffi::ResultBuffer<DT> value, ffi::ResultBuffer<DT> d_origins,
-                         ffi::ResultBuffer<DT> d_directions, ffi::ResultBuffer<DT> d_t0,
-                         ffi::ResultBuffer<DT> d_chord) {
+ffi::Error check_inputs(ffi::Buffer<DT>& rates, ffi::Buffer<DT>& origin, ffi::Buffer<DT>& res_buf,
+                        ffi::Buffer<DT>& origins, ffi::Buffer<DT>& directions,
+                        ffi::Buffer<DT>& t0s, ffi::Buffer<DT>& chords, int64_t n_nodes,
+                        Inputs<ffi::NativeType<DT>>& in) {
   using T = ffi::NativeType<DT>;
   auto rd = rates.dimensions();
   if (rd.size() != 2 || rd[0] < 1 || rd[1] < 1) return bad("rates must be [nx ny], nx, ny >= 1");
-  const int64_t nx = rd[0], ny = rd[1];
+  in.nx = rd[0];
+  in.ny = rd[1];
   if (origin.element_count() != 2) return bad("origin must be [2]");
   if (res_buf.element_count() != 1) return bad("resolution must be a scalar");
   auto od = origins.dimensions();
   if (od.size() != 2 || od[1] != 2) return bad("origins must be [n 2]");
   const int64_t n = od[0];
+  in.n = n;
   if (static_cast<int64_t>(directions.element_count()) != 2 * n)
     return bad("directions must be [n 2] like origins");
   if (static_cast<int64_t>(t0s.element_count()) != n ||
       static_cast<int64_t>(chords.element_count()) != n)
     return bad("t0 and chord must be [n]");
   if (n_nodes < 1) return bad("n_nodes must be >= 1");
-  const T* R = rates.typed_data();
-  const T ox0 = origin.typed_data()[0], oy0 = origin.typed_data()[1];
-  const T res = res_buf.typed_data()[0];
-  if (!(std::isfinite(ox0) && std::isfinite(oy0))) return bad("origin must be finite");
-  if (!(std::isfinite(res) && res > 0)) return bad("resolution must be positive and finite");
-  const T* O = origins.typed_data();
-  const T* D = directions.typed_data();
-  const T* T0 = t0s.typed_data();
-  const T* C = chords.typed_data();
-  // the nodes stay within the chord, so |u| is bounded by the rays' reach over res; a
-  // reach beyond 2^52 cells (int64 floor overflow) is rejected
+  in.R = rates.typed_data();
+  in.ox0 = origin.typed_data()[0];
+  in.oy0 = origin.typed_data()[1];
+  in.res = res_buf.typed_data()[0];
+  if (!(std::isfinite(in.ox0) && std::isfinite(in.oy0))) return bad("origin must be finite");
+  if (!(std::isfinite(in.res) && in.res > 0))
+    return bad("resolution must be positive and finite");
+  const T* O = in.O = origins.typed_data();
+  const T* D = in.D = directions.typed_data();
+  const T* T0 = in.T0 = t0s.typed_data();
+  const T* C = in.C = chords.typed_data();
   const double limit = 4.0e15;
-  std::vector<double> reach(static_cast<size_t>(n));
+  in.reach.assign(static_cast<size_t>(n), 0.0);
   for (int64_t k = 0; k < n; ++k) {
     const T v[6] = {O[2 * k], O[2 * k + 1], D[2 * k], D[2 * k + 1], T0[k], C[k]};
     for (int q = 0; q < 6; ++q) {
@@ -236,17 +248,37 @@ ffi::Error ChordIntegral(ffi::Buffer<DT> rates, ffi::Buffer<DT> origin, ffi::Buf
         return bad(std::string("non-finite ") + what + " at ray " + std::to_string(k));
       }
     }
-    if (C[k] < 0 || T0[k] < 0)
-      return bad("negative t0 or chord at ray " + std::to_string(k));
-    reach[k] = (std::fabs(static_cast<double>(O[2 * k])) +
-                          std::fabs(static_cast<double>(O[2 * k + 1])) +
-                          (static_cast<double>(T0[k]) + static_cast<double>(C[k])) *
-                              (std::fabs(static_cast<double>(D[2 * k])) +
-                               std::fabs(static_cast<double>(D[2 * k + 1]))) +
-                          std::fabs(static_cast<double>(ox0)) + std::fabs(static_cast<double>(oy0))) /
-                         static_cast<double>(res);
-    if (!(reach[k] < limit)) return bad("ray " + std::to_string(k) + " reaches too far for the grid");
+    if (C[k] < 0 || T0[k] < 0) return bad("negative t0 or chord at ray " + std::to_string(k));
+    const double reach_m =
+        std::fabs(static_cast<double>(O[2 * k])) + std::fabs(static_cast<double>(O[2 * k + 1])) +
+        (static_cast<double>(T0[k]) + static_cast<double>(C[k])) *
+            (std::fabs(static_cast<double>(D[2 * k])) +
+             std::fabs(static_cast<double>(D[2 * k + 1]))) +
+        std::fabs(static_cast<double>(in.ox0)) + std::fabs(static_cast<double>(in.oy0));
+    in.reach[k] = reach_m / static_cast<double>(in.res);
+    if (!(in.reach[k] < limit))
+      return bad("ray " + std::to_string(k) + " reaches too far for the grid");
   }
+  return ffi::Error::Success();
+}
+
+template <ffi::DataType DT>
+ffi::Error ChordIntegral(ffi::Buffer<DT> rates, ffi::Buffer<DT> origin, ffi::Buffer<DT> res_buf,
+                         ffi::Buffer<DT> origins, ffi::Buffer<DT> directions,
+                         ffi::Buffer<DT> t0s, ffi::Buffer<DT> chords, int64_t n_nodes,
+                         ffi::ResultBuffer<DT> value, ffi::ResultBuffer<DT> d_origins,
+                         ffi::ResultBuffer<DT> d_directions, ffi::ResultBuffer<DT> d_t0,
+                         ffi::ResultBuffer<DT> d_chord) {
+  using T = ffi::NativeType<DT>;
+  Inputs<T> in;
+  ffi::Error err =
+      check_inputs<DT>(rates, origin, res_buf, origins, directions, t0s, chords, n_nodes, in);
+  if (err.failure()) return err;
+  const T* R = in.R;
+  const int64_t nx = in.nx, ny = in.ny, n = in.n;
+  const T ox0 = in.ox0, oy0 = in.oy0, res = in.res;
+  const T *O = in.O, *D = in.D, *T0 = in.T0, *C = in.C;
+  const std::vector<double>& reach = in.reach;
   T* V = value->typed_data();
   T* GO = d_origins->typed_data();
   T* GD = d_directions->typed_data();
@@ -298,6 +330,99 @@ ffi::Error ChordIntegral(ffi::Buffer<DT> rates, ffi::Buffer<DT> origin, ffi::Buf
   return ffi::Error::Success();
 }
 
+
+// Second derivatives of F in the ray parameters x = (o_x, o_y, d_x, d_y, t0, c), per ray a
+// symmetric [6 6] matrix, for second-order autodiff (the SLAM front end's match
+// information, a Hessian in the pose). With p_j = o + tau_j d, tau_j = t0 + c s_j, the
+// bilinear patch's Hessian is h_j [[0 1] [1 0]] (h_j = d2f/dxdy; f is linear along each
+// axis within a patch, as JAX's autodiff of the interpolant sees it), P_a = dp_j/dx_a
+// (e_x, e_y, tau e_x, tau e_y, d, s_j d) and A = sum_j f(p_j):
+//   d2A/dx_a dx_b = sum_j h_j (P_a,x P_b,y + P_a,y P_b,x) + sum_j g_j . d2p_j/dx_a dx_b
+// where d2p/dd dt0 = I and d2p/dd dc = s_j I are the only non-zero second derivatives of p,
+// and F = c A / K gives d2F = c/K d2A + [a = c] dA/dx_b / K + [b = c] dA/dx_a / K.
+// Scalar, in double (called once per match, not per optimiser step).
+template <typename T>
+void ray_hessian(const Inputs<T>& in, int64_t k, const T* s_nodes, int64_t K, double* H) {
+  const double inv_res = 1.0 / static_cast<double>(in.res);
+  const T tinv_res = T(1) / in.res;
+  const T ox = in.O[2 * k], oy = in.O[2 * k + 1], dx = in.D[2 * k], dy = in.D[2 * k + 1];
+  const T t0 = in.T0[k], c = in.C[k];
+  const int64_t nx = in.nx, ny = in.ny;
+  double HA[6][6] = {};
+  double GA[6] = {};
+  double sgx = 0, sgy = 0, ssgx = 0, ssgy = 0;
+  const double ddx = dx, ddy = dy;
+  for (int64_t j = 0; j < K; ++j) {
+    const T s = s_nodes[j];
+    const T t = t0 + c * s;
+    const T ux = (ox + t * dx - in.ox0) * tinv_res - T(0.5);
+    const T uy = (oy + t * dy - in.oy0) * tinv_res - T(0.5);
+    int64_t i = static_cast<int64_t>(ux);
+    i -= static_cast<T>(i) > ux ? 1 : 0;
+    int64_t jj = static_cast<int64_t>(uy);
+    jj -= static_cast<T>(jj) > uy ? 1 : 0;
+    const double wx = static_cast<double>(ux - static_cast<T>(i));
+    const double wy = static_cast<double>(uy - static_cast<T>(jj));
+    const int64_t i0 = i < 0 ? 0 : (i > nx - 1 ? nx - 1 : i);
+    const int64_t i1 = i + 1 < 0 ? 0 : (i + 1 > nx - 1 ? nx - 1 : i + 1);
+    const int64_t j0 = jj < 0 ? 0 : (jj > ny - 1 ? ny - 1 : jj);
+    const int64_t j1 = jj + 1 < 0 ? 0 : (jj + 1 > ny - 1 ? ny - 1 : jj + 1);
+    const double a00 = in.R[i0 * ny + j0], a10 = in.R[i1 * ny + j0];
+    const double a01 = in.R[i0 * ny + j1], a11 = in.R[i1 * ny + j1];
+    const double gx = ((a10 - a00) * (1 - wy) + (a11 - a01) * wy) * inv_res;
+    const double gy = ((a01 - a00) * (1 - wx) + (a11 - a10) * wx) * inv_res;
+    const double h = (a11 - a10 - a01 + a00) * inv_res * inv_res;
+    const double ts = static_cast<double>(t), ss = static_cast<double>(s);
+    const double P[6][2] = {{1, 0}, {0, 1}, {ts, 0}, {0, ts}, {ddx, ddy}, {ss * ddx, ss * ddy}};
+    for (int a = 0; a < 6; ++a) {
+      GA[a] += gx * P[a][0] + gy * P[a][1];
+      for (int b = a; b < 6; ++b) HA[a][b] += h * (P[a][0] * P[b][1] + P[a][1] * P[b][0]);
+    }
+    sgx += gx;
+    sgy += gy;
+    ssgx += ss * gx;
+    ssgy += ss * gy;
+  }
+  HA[2][4] += sgx;   // d2p/ddx dt0 = e_x
+  HA[3][4] += sgy;   // d2p/ddy dt0 = e_y
+  HA[2][5] += ssgx;  // d2p/ddx dc = s e_x
+  HA[3][5] += ssgy;  // d2p/ddy dc = s e_y
+  const double inv_k = 1.0 / static_cast<double>(K), w = static_cast<double>(c) * inv_k;
+  for (int a = 0; a < 6; ++a) {
+    for (int b = a; b < 6; ++b) {
+      double v = w * HA[a][b];
+      if (a == 5) v += inv_k * GA[b];
+      if (b == 5) v += inv_k * GA[a];
+      H[a * 6 + b] = v;
+      H[b * 6 + a] = v;
+    }
+  }
+}
+
+template <ffi::DataType DT>
+ffi::Error ChordHessian(ffi::Buffer<DT> rates, ffi::Buffer<DT> origin, ffi::Buffer<DT> res_buf,
+                        ffi::Buffer<DT> origins, ffi::Buffer<DT> directions, ffi::Buffer<DT> t0s,
+                        ffi::Buffer<DT> chords, int64_t n_nodes, ffi::ResultBuffer<DT> hessian) {
+  using T = ffi::NativeType<DT>;
+  Inputs<T> in;
+  ffi::Error err =
+      check_inputs<DT>(rates, origin, res_buf, origins, directions, t0s, chords, n_nodes, in);
+  if (err.failure()) return err;
+  std::vector<T> s_nodes(static_cast<size_t>(n_nodes));
+  for (int64_t j = 0; j < n_nodes; ++j)
+    s_nodes[j] = (static_cast<T>(j) + T(0.5)) / static_cast<T>(n_nodes);
+  T* out = hessian->typed_data();
+  double H[36];
+  for (int64_t k = 0; k < in.n; ++k) {
+    ray_hessian<T>(in, k, s_nodes.data(), n_nodes, H);
+    for (int q = 0; q < 36; ++q) {
+      if (!std::isfinite(H[q])) return bad("non-finite rates on the path of ray " + std::to_string(k));
+      out[k * 36 + q] = static_cast<T>(H[q]);
+    }
+  }
+  return ffi::Error::Success();
+}
+
 }  // namespace
 
 #define LIDARJAX_CHORD(NAME, DT)                                  \
@@ -319,3 +444,19 @@ ffi::Error ChordIntegral(ffi::Buffer<DT> rates, ffi::Buffer<DT> origin, ffi::Buf
 
 LIDARJAX_CHORD(LidarjaxChordIntegralF32, ffi::F32)
 LIDARJAX_CHORD(LidarjaxChordIntegralF64, ffi::F64)
+
+#define LIDARJAX_CHORD_HESSIAN(NAME, DT)                          \
+  XLA_FFI_DEFINE_HANDLER_SYMBOL(NAME, (ChordHessian<DT>),         \
+                                ffi::Ffi::Bind()                  \
+                                    .Arg<ffi::Buffer<DT>>()       \
+                                    .Arg<ffi::Buffer<DT>>()       \
+                                    .Arg<ffi::Buffer<DT>>()       \
+                                    .Arg<ffi::Buffer<DT>>()       \
+                                    .Arg<ffi::Buffer<DT>>()       \
+                                    .Arg<ffi::Buffer<DT>>()       \
+                                    .Arg<ffi::Buffer<DT>>()       \
+                                    .Attr<int64_t>("n_nodes")     \
+                                    .Ret<ffi::Buffer<DT>>());
+
+LIDARJAX_CHORD_HESSIAN(LidarjaxChordHessianF32, ffi::F32)
+LIDARJAX_CHORD_HESSIAN(LidarjaxChordHessianF64, ffi::F64)

@@ -88,7 +88,7 @@ def test_info(capsys):
     assert f"jax        {jax.__version__}" in out
     assert "jaxlib" in out and "numpy" in out and "devices    cpu" in out
     assert "x64        True" in out  # tests/conftest.py turns float64 on
-    for kernel in ("accumulate", "fold", "polyline_plus"):
+    for kernel in ("accumulate", "fold", "polyline_plus", "field_integral", "blur"):
         assert kernel in out
     assert str(SHARED.resolve()) in out
     assert "compilation cache" in out

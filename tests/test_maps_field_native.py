@@ -368,3 +368,45 @@ np.savez(sys.argv[1], **out)
             scale = np.abs(base[k]).max()
             assert scale > 0, k
             np.testing.assert_allclose(wide[k], base[k], atol=2e-6 * scale, err_msg=k)
+
+
+# --------------------------------------------------------------------------------------
+# the native blur of the SLAM front end's window
+# --------------------------------------------------------------------------------------
+
+
+@native
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("sigma", [0.4, 2.0, 6.0])
+def test_native_blur_matches_jax(dtype, sigma):
+    from lidarjax.maps import blur
+
+    x = jnp.asarray(np.random.default_rng(0).gamma(0.5, 2.0, (57, 43)), dtype)
+    a, b = blur(x, sigma), jax.jit(lambda x: _native.blur2d(x, sigma))(x)
+    assert b.dtype == a.dtype and b.shape == a.shape
+    tol = 1e-14 if dtype == np.float64 else 1e-6
+    np.testing.assert_allclose(b, a, rtol=tol, atol=tol * float(jnp.abs(a).max()))
+    # an independent reference: the blur of a unit impulse far from the border is the
+    # outer product of the 1-D taps, and a constant stays constant (border extended)
+    from lidarjax.maps._smoothing import gaussian_kernel_1d
+
+    k = gaussian_kernel_1d(sigma, 3.0)
+    h = (k.size - 1) // 2
+    imp = np.zeros((2 * h + 9, 2 * h + 11))
+    imp[h + 4, h + 5] = 1.0
+    got = np.asarray(_native.blur2d(jnp.asarray(imp, dtype), sigma))
+    np.testing.assert_allclose(got[4 : 4 + 2 * h + 1, 5 : 5 + 2 * h + 1], np.outer(k, k), atol=tol)
+    const = np.asarray(_native.blur2d(jnp.full((9, 7), 0.7, dtype), sigma))
+    np.testing.assert_allclose(const, 0.7, rtol=10 * tol)
+
+
+@native
+def test_native_blur_rejects_bad_input():
+    with pytest.raises(Exception, match="non-finite values at cell 5"):
+        jax.block_until_ready(
+            _native.blur2d(jnp.asarray(np.r_[np.ones(5), np.nan, np.ones(6)].reshape(3, 4)), 1.0)
+        )
+    with pytest.raises(ValueError, match="values"):
+        _native.blur2d(jnp.ones((2, 3, 4)), 1.0)
+    with pytest.raises(ValueError, match="sigma_cells"):
+        _native.blur2d(jnp.ones((3, 4)), 0.0)

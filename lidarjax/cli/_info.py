@@ -15,6 +15,12 @@ _KERNELS = (
     ("accumulate", "LidarjaxAccumulate", "raytrace.accumulate (grid statistics, maps)"),
     ("fold", "LidarjaxFold", "sensor-model likelihoods (batch_log_likelihood, ScanModel)"),
     ("polyline_plus", "LidarjaxPolylinePlus", "features.optimize_polylines (PLE+)"),
+    (
+        "field_integral",
+        "LidarjaxChordIntegral",
+        "SmoothDecayRateField optical depth (SLAM front end, alternating back end)",
+    ),
+    ("blur", "LidarjaxBlur2D", "the SLAM front end's map blur"),
 )
 
 

@@ -94,6 +94,11 @@ def _load() -> bool:
                     platform="cpu",
                 )
                 jax.ffi.register_ffi_target(
+                    f"lidarjax_blur2d_{dt.lower()}",
+                    jax.ffi.pycapsule(getattr(lib, f"LidarjaxBlur2D{dt}")),
+                    platform="cpu",
+                )
+                jax.ffi.register_ffi_target(
                     f"lidarjax_chord_hessian_{dt.lower()}",
                     jax.ffi.pycapsule(getattr(lib, f"LidarjaxChordHessian{dt}")),
                     platform="cpu",
@@ -316,3 +321,27 @@ def chord_hessian(rates, origin, resolution, origins, directions, t0, chord, n_n
         jnp.asarray(chord, dtype),
         n_nodes=np.int64(n_nodes),
     )
+
+
+def blur2d(values, sigma_cells: float):
+    """Native :func:`~lidarjax.maps.blur` of a ``[nx ny]`` array (``csrc/blur.cc``): the
+    separable Gaussian (truncated at 3 sigma) with the border cells extended, the same
+    taps in the same order as the JAX path (equal to round-off). Not differentiable (the
+    SLAM front end blurs a fixed map). A non-finite cell is an error naming it.
+
+    Args:
+        values: ``[nx ny]`` float32 or float64 array.
+        sigma_cells: standard deviation in cells (> 0).
+    """
+    from ..maps._smoothing import gaussian_kernel_1d
+
+    values = jnp.asarray(values)
+    if values.ndim != 2:
+        raise ValueError(f"values must be [nx ny], got shape {values.shape}")
+    taps = jnp.asarray(gaussian_kernel_1d(float(sigma_cells), 3.0), values.dtype)
+    call = jax.ffi.ffi_call(
+        f"lidarjax_blur2d_{_dt(values.dtype)}",
+        jax.ShapeDtypeStruct(values.shape, values.dtype),
+        vmap_method="sequential",
+    )
+    return call(values, taps)

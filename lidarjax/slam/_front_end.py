@@ -392,6 +392,16 @@ def _dilate(mask):
     return out
 
 
+def _blur(rates, sigma_cells: float, backend: str):
+    """:func:`~lidarjax.maps.blur` of the window's rates, by the native kernel where
+    ``backend`` resolves to it (the map is fixed during a match: no derivatives needed)."""
+    from ..raytrace import _native
+
+    if sigma_cells > 0 and backend != "jax" and _native.resolve(backend) == "native":
+        return _native.blur2d(rates, sigma_cells)
+    return blur(rates, sigma_cells)
+
+
 def _scan_log_likelihoods(field, pose, az, rng, cfg: FrontEndConfig, gap=0.0):
     """``[b]`` per-ray decay-rate log-likelihoods of one scan at ``pose`` (readings at or
     beyond the range cap are no-returns to it), floored at ``cfg.ray_floor``; the optical
@@ -442,7 +452,7 @@ def _match_impl(rates, seen, origin, az, rng, pose0, pred, sigmas, cfg: FrontEnd
     if n_xy > 0 or n_yaw > 0:
         # exhaustive end-point search on a lattice around pose0 (basin finding)
         sb = cfg.search_blur_m / res
-        lam = blur(rates, sb) if sb > 0 else rates
+        lam = _blur(rates, sb, cfg.backend) if sb > 0 else rates
         table = jnp.maximum(jnp.log(lam + cfg.rate_floor), cfg.ray_floor)
         hitw = w * (rng < cfg.range_cap_m)
         start, s_best, s_runner = correlative_search(
@@ -472,7 +482,7 @@ def _match_impl(rates, seen, origin, az, rng, pose0, pred, sigmas, cfg: FrontEnd
         if cfg.model == "endpoint":
             b = max(b, res / 2)  # a likelihood field needs some width
         field = SmoothDecayRateField(
-            DecayRateMap(spec, blur(rates, b / res), zero),
+            DecayRateMap(spec, _blur(rates, b / res, cfg.backend), zero),
             n_nodes=cfg.n_nodes,
             backend=cfg.backend,
         )

@@ -1200,6 +1200,7 @@ class SlamFrontEnd:
     resolution_m: float = _f(positive)
     range_cap_m: float = _f(positive)
     blur_schedule_m: list[float] = _f(nonempty, each=nonnegative)
+    backend: str = _f(one_of("auto", "native", "jax"))
 
 
 @dataclass

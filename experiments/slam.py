@@ -126,6 +126,7 @@ def main(cfg: DictConfig) -> None:
         range_cap_m=cfg.front_end.range_cap_m,
         window_m=cfg.front_end.range_cap_m + 2.0,
         blur_schedule_m=tuple(cfg.front_end.blur_schedule_m),
+        backend=cfg.front_end.backend,
     )
     loops = slam.LoopConfig(
         radius_m=cfg.loops.radius_m,
@@ -138,6 +139,7 @@ def main(cfg: DictConfig) -> None:
         range_cap_m=cfg.back_end.range_cap_m,
         max_steps=cfg.back_end.max_steps,
         rounds=cfg.back_end.rounds,
+        backend=cfg.front_end.backend,
     )
     results: dict = {"run_info": run_info(), "logs": {}}
     rows = []

@@ -220,6 +220,7 @@ VALUE_ERRORS = [
     ("slam", ["loops.min_separation=5"], "loops.min_separation = 5", "> 10"),
     ("slam", ["max_scans=0"], "max_scans = 0", ">= 1"),
     ("slam", ["azimuth_layout=centred"], "azimuth_layout = 'centred'", "must be one of"),
+    ("slam", ["front_end.backend=cuda"], "front_end.backend = 'cuda'", "must be one of"),
 ]
 
 

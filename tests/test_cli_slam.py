@@ -86,10 +86,14 @@ def test_slam_outputs(office_slam, office_log):
     ate_fe = absolute_trajectory_error(fe, truth).rmse_m
     ate = absolute_trajectory_error(est, truth).rmse_m
     assert ate_odo > 0.15, ate_odo  # the test needs drift to correct
-    # measured: odometry 0.185 m, front end 0.026-0.034 m, pose graph 0.10-0.11 m. With
-    # no loop on these 30 scans the robust chain's odometry factors pull the pose graph
-    # toward the odometry (plain chain: 0.026 m; docs/results/slam.md)
-    assert ate_fe < 0.05 and ate < ate_odo, (ate_fe, ate, ate_odo)
+    # measured: odometry 0.185 m, pose graph 0.10-0.14 m. With no loop on these 30 scans
+    # the robust chain's odometry factors pull the pose graph toward the odometry (plain
+    # chain: 0.026 m; docs/results/slam.md). The front end's ATE is a chaotic function of
+    # round-off (stop 52): perturbing the odometry by 1e-13 ... 1e-9 m gave 0.020-0.034 m
+    # on the JAX path and 0.017-0.061 m on the native kernels (the default; 0.061 m is
+    # this unperturbed run), so the bound is the largest of those twelve plus 25 %, and
+    # still a third of the odometry's
+    assert ate_fe < 0.075 and ate < ate_odo, (ate_fe, ate, ate_odo)
     summary = json.loads((out / "slam.json").read_text())
     assert summary["n_scans"] == N_SCANS and summary["odometry"] == "the log's"
     # the log's largest reading (a wall, 18.98 m) reads as its no-return value, so the

@@ -303,6 +303,20 @@ def test_native_nan_rate_on_a_path_is_an_error_off_it_no_effect(jit):
         jax.block_until_ready(call(jnp.asarray(rates)))
 
 
+@pytest.mark.parametrize("backend", ["jax", "native"])
+def test_integral_rejects_batched_rays(backend):
+    """A scan batch ``[scans beams 2]`` is not a ray list: an error naming the argument on
+    both paths (the kernel would otherwise see a shape it cannot read)."""
+    if backend == "native" and not _native.available():
+        pytest.skip(f"native kernels unavailable: {_native.unavailable_reason()}")
+    f = _field(np.float64, 4).with_backend(backend)
+    o, d, r = _rays(np.float64, n=6)
+    with pytest.raises(ValueError, match="origins must be"):
+        f.integral(o.reshape(2, 3, 2), d, r)
+    with pytest.raises(ValueError, match="lengths"):
+        f.integral(o, d, r[:5])
+
+
 def test_field_backend_argument_is_checked(monkeypatch):
     m = _field(np.float64, 4).grid
     with pytest.raises(ValueError, match="backend"):

@@ -82,6 +82,9 @@ def test_guide_examples_run():
     assert ns["log"].ranges_m.shape == (910, 180)
     assert int(ns["stats"].hits.sum()) == ns["rays"].counts()["HIT"]
     assert ns["ll"].shape == (180,) and ns["ll_fmp"].shape == (180,)
+    # the optical depth of a smooth field on the native kernel and the JAX path
+    assert ns["depth"].shape == (180,) and float(ns["depth"].max()) > 0
+    np.testing.assert_allclose(ns["depth"], ns["depth_jax"], rtol=1e-9, atol=1e-9)
     assert np.all(np.isfinite(np.asarray(ns["ll_fmp"])))
     assert ns["scores"].shape == (100,)
     track, odd = np.asarray(ns["track"]), ns["odd"]

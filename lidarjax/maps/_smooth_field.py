@@ -288,6 +288,15 @@ class SmoothDecayRateField(AbstractDecayRateField):
         Returns:
             ``[n]`` optical depths (dimensionless).
         """
+        origins, directions, lengths = (jnp.asarray(x) for x in (origins, directions, lengths))
+        for name, x, ndim in (("origins", origins, 2), ("directions", directions, 2)):
+            if x.ndim != ndim or x.shape[-1] != 2:
+                raise ValueError(f"{name} must be [n 2], got shape {x.shape}")
+        if directions.shape != origins.shape or lengths.shape != origins.shape[:1]:
+            raise ValueError(
+                f"origins {origins.shape}, directions {directions.shape} and lengths "
+                f"{lengths.shape} must be [n 2], [n 2] and [n]"
+            )
         spec = self.grid.spec
         t0, t1 = jax.vmap(lambda o, d, r: box_segment(spec.origin, spec.upper, o, d, r))(
             origins, directions, lengths

@@ -18,14 +18,19 @@
 //   dF/dt0 = (c / K) sum_j g_j . d
 //   dF/dc  = (1 / K) sum_j f(p_j) + (c / K) sum_j s_j g_j . d
 //
-// Node positions are computed in the input precision T with the JAX path's operation order
-// (so a node falls in the same cell as there up to round-off at a lattice line); the sums
-// are accumulated in double for float32 input too, which makes the float32 result more
-// accurate than the JAX path's float32 reduction (they agree to its round-off). The rays
-// are processed one after the other on the calling thread: one scan's 180-1000 rays are
-// under a millisecond of work, and XLA's thread pool is busy with the caller's own ops.
-// Every loop is bounded by the ray count times K. Non-finite inputs are an error naming the
-// argument (never a silent NaN); the rates are checked on the patches the nodes read.
+// A second handler (ChordHessian) returns the [6 6] second derivatives in (o, d, t0, c)
+// per ray, for second-order autodiff (see ray_hessian below).
+//
+// Node positions are computed in the input precision T in the JAX path's order (the cell
+// coordinate multiplies by 1 / res where the JAX path divides, as XLA itself often does),
+// so a node falls in the same cell as there up to round-off at a lattice line. The sums
+// are accumulated in double (the float32 AVX2 path: float lanes flushed into double every
+// 64 nodes), which makes the float32 result more accurate than the JAX path's float32
+// reduction (they agree to its round-off). The rays are processed one after the other on
+// the calling thread: one scan's 180-1000 rays are under a millisecond of work, and XLA's
+// thread pool is busy with the caller's own ops. Every loop is bounded by the ray count
+// times K. Non-finite inputs are an error naming the argument (never a silent NaN); the
+// rates are checked on the patches the nodes read.
 
 #include <cmath>
 #include <cstdint>
@@ -278,7 +283,7 @@ ffi::Error ChordIntegral(ffi::Buffer<DT> rates, ffi::Buffer<DT> origin, ffi::Buf
   const int64_t nx = in.nx, ny = in.ny, n = in.n;
   const T ox0 = in.ox0, oy0 = in.oy0, res = in.res;
   const T *O = in.O, *D = in.D, *T0 = in.T0, *C = in.C;
-  const std::vector<double>& reach = in.reach;
+  [[maybe_unused]] const std::vector<double>& reach = in.reach;  // the AVX2 path's guard
   T* V = value->typed_data();
   T* GO = d_origins->typed_data();
   T* GD = d_directions->typed_data();

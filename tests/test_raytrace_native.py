@@ -164,6 +164,30 @@ def test_float32_kernels_match_jax_float32():
     assert int(cells) == 0 and float(body) <= 1.0
 
 
+def run_under_isas(script: str, tmp_path, *args: str) -> dict:
+    """``{isa: arrays}``: ``script`` run in a subprocess with the baseline and with the AVX2
+    native library (``LIDARJAX_NATIVE_ISA``), as ``python -c script PATH *args ISA``; it
+    saves its arrays to ``PATH`` (``np.savez``)."""
+    import os
+    import subprocess
+    import sys
+
+    res = {}
+    for isa in ("baseline", "avx2"):
+        path = tmp_path / f"{isa}.npz"
+        env = dict(os.environ, LIDARJAX_NATIVE_ISA=isa)
+        out = subprocess.run(
+            [sys.executable, "-c", script, str(path), *args, isa],
+            capture_output=True,
+            text=True,
+            env=env,
+            timeout=300,
+        )
+        assert out.returncode == 0, out.stderr[-3000:]
+        res[isa] = dict(np.load(path))
+    return res
+
+
 _ISA_SCRIPT = """
 import sys
 import jax
@@ -212,23 +236,7 @@ def test_avx2_and_baseline_libraries_agree(tmp_path, dtype):
     """The AVX2 build (8 float / 4 double ray lanes) and the baseline build (4 / 2 lanes),
     in subprocesses: per-ray folds bit-identical, hit/miss counts identical, per-cell
     lengths equal to round-off (rays add to a cell in a lane-width dependent order)."""
-    import os
-    import subprocess
-    import sys
-
-    res = {}
-    for isa in ("baseline", "avx2"):
-        path = tmp_path / f"{isa}.npz"
-        env = dict(os.environ, LIDARJAX_NATIVE_ISA=isa)
-        out = subprocess.run(
-            [sys.executable, "-c", _ISA_SCRIPT, str(path), dtype, isa],
-            capture_output=True,
-            text=True,
-            env=env,
-            timeout=300,
-        )
-        assert out.returncode == 0, out.stderr[-3000:]
-        res[isa] = dict(np.load(path))
+    res = run_under_isas(_ISA_SCRIPT, tmp_path, dtype)
     base, wide = res["baseline"], res["avx2"]
     assert base.keys() == wide.keys() and len(base) == 2 * (3 + 4 * 5)
     rtol = 1e-12 if dtype == "f64" else 1e-5

@@ -307,8 +307,6 @@ def test_front_end_on_a_whole_lap():
 
 @pytest.mark.parametrize("backend", ["jax", "native"])
 def test_match_scan_recovers_a_perturbed_pose(office_short, backend):
-    if backend == "native" and not _native.available():
-        pytest.skip(f"native kernels unavailable: {_native.unavailable_reason()}")
     truth, ranges, _ = office_short
     # the 10 m range cap these bounds were measured with (the default is 20 m since stop
     # 46; on this scan it ends 0.013-0.031 m and <= 0.005 rad off, on the office's other
@@ -318,6 +316,11 @@ def test_match_scan_recovers_a_perturbed_pose(office_short, backend):
     grid = GridMap(cfg.resolution_m, cfg.range_cap_m)
     for k in range(0, truth.shape[0], 2):  # the map of the even scans at the true poses
         grid.add_scan(truth[k], AZ, ranges[k])
+    if backend == "native" and not _native.available():
+        # without the kernels, asking for them is an error saying why (no silent fallback)
+        with pytest.raises(RuntimeError, match="backend='native'"):
+            match_scan(grid, AZ, ranges[15], truth[15], cfg)
+        return
     # an odd scan (not in the map). Measured with 0.05 m cells: 0.012-0.018 m and
     # <= 0.003 rad from 0.1-0.2 m / 0.03-0.05 rad off. (Scan 25 looks along a corridor: from
     # 0.2 m off it ends 0.11-0.13 m away, from 0.1 m off 0.04 m; not asserted.)
@@ -772,9 +775,13 @@ def test_back_end_does_not_lose_objective(back_end_problem, optimize):
 def test_alternating_pose_steps_native_equal_jax(back_end_problem):
     """The alternating scheme's pose steps (field fixed) on the native optical depth give
     the JAX path's poses and objective (measured: poses 3e-9 apart, 3.4 times faster)."""
-    if not _native.available():
-        pytest.skip(f"native kernels unavailable: {_native.unavailable_reason()}")
     truth, ranges, start, edges, meas, sig = back_end_problem
+    if not _native.available():
+        # without the kernels, asking for them is an error saying why (no silent fallback)
+        cfg = BackEndConfig(max_steps=1, n_nodes=64, rounds=1, backend="native")
+        with pytest.raises(RuntimeError, match="backend='native'"):
+            optimize_alternating(start, AZ, ranges, edges, meas, sig, cfg)
+        return
     res = {}
     for backend in ("jax", "native"):
         cfg = BackEndConfig(max_steps=30, n_nodes=64, rounds=2, backend=backend)

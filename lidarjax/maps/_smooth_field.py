@@ -70,11 +70,15 @@ def _native_chord(n_nodes, rates, origin, resolution, origins, directions, t0, c
     return _native_chord_impl(n_nodes, rates, origin, resolution, origins, directions, t0, chord)[0]
 
 
+def _stacked_gradient(g_o, g_d, g_t0, g_c):
+    """``[n 6]`` gradient in ``(o_x, o_y, d_x, d_y, t0, chord)``."""
+    return jnp.concatenate([g_o, g_d, g_t0[:, None], g_c[:, None]], axis=1)
+
+
 def _native_chord_jvp(n_nodes, primals, tangents):
     _grid_tangents_are_zero(tangents)
-    value, g_o, g_d, g_t0, g_c = _native_chord_grads(n_nodes, *primals)
-    g = jnp.concatenate([g_o, g_d, g_t0[:, None], g_c[:, None]], axis=1)
-    return value, jnp.sum(g * _ray_tangents(primals, tangents), axis=1)
+    value, *grads = _native_chord_grads(n_nodes, *primals)
+    return value, jnp.sum(_stacked_gradient(*grads) * _ray_tangents(primals, tangents), axis=1)
 
 
 _native_chord.defjvp(_native_chord_jvp, symbolic_zeros=True)
@@ -92,8 +96,7 @@ def _native_chord_grads_jvp(n_nodes, primals, tangents):
 
     _grid_tangents_are_zero(tangents)
     outs = _native_chord_impl(n_nodes, *primals)
-    value, g_o, g_d, g_t0, g_c = outs
-    g = jnp.concatenate([g_o, g_d, g_t0[:, None], g_c[:, None]], axis=1)
+    g = _stacked_gradient(*outs[1:])
     xdot = _ray_tangents(primals, tangents)
     hess = _native.chord_hessian(*primals, n_nodes)
     gdot = jnp.einsum("nab,nb->na", hess, xdot)

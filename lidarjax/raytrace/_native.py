@@ -87,22 +87,18 @@ def _load() -> bool:
                             jax.ffi.pycapsule(getattr(lib, f"LidarjaxFold{dt}D{d}M{m}")),
                             platform="cpu",
                         )
-                # optical depth of a bilinear field (SmoothDecayRateField), field_integral.cc
-                jax.ffi.register_ffi_target(
-                    f"lidarjax_chord_integral_{dt.lower()}",
-                    jax.ffi.pycapsule(getattr(lib, f"LidarjaxChordIntegral{dt}")),
-                    platform="cpu",
-                )
-                jax.ffi.register_ffi_target(
-                    f"lidarjax_blur2d_{dt.lower()}",
-                    jax.ffi.pycapsule(getattr(lib, f"LidarjaxBlur2D{dt}")),
-                    platform="cpu",
-                )
-                jax.ffi.register_ffi_target(
-                    f"lidarjax_chord_hessian_{dt.lower()}",
-                    jax.ffi.pycapsule(getattr(lib, f"LidarjaxChordHessian{dt}")),
-                    platform="cpu",
-                )
+                # optical depth of a bilinear field (SmoothDecayRateField) and its second
+                # derivatives, field_integral.cc; the front end's map blur, blur.cc
+                for target, symbol in (
+                    ("chord_integral", "LidarjaxChordIntegral"),
+                    ("chord_hessian", "LidarjaxChordHessian"),
+                    ("blur2d", "LidarjaxBlur2D"),
+                ):
+                    jax.ffi.register_ffi_target(
+                        f"lidarjax_{target}_{dt.lower()}",
+                        jax.ffi.pycapsule(getattr(lib, f"{symbol}{dt}")),
+                        platform="cpu",
+                    )
                 # PLE+ (lidarjax.features.optimize_polylines), csrc/polyline_plus.cc
                 jax.ffi.register_ffi_target(
                     f"lidarjax_polyline_plus_{dt.lower()}",
@@ -263,6 +259,18 @@ def fold(spec, mode: int, tables, origins, directions, lengths, threads: int):
     )
 
 
+def _chord_args(rates, origin, resolution, origins, directions, t0, chord):
+    """The chord kernels' inputs in the dtype of ``rates`` (origin ``[2]``, resolution
+    ``[]``)."""
+    dtype = rates.dtype
+    return (
+        rates,
+        jnp.asarray(origin, dtype).reshape(2),
+        jnp.asarray(resolution, dtype).reshape(()),
+        *(jnp.asarray(x, dtype) for x in (origins, directions, t0, chord)),
+    )
+
+
 def chord_integral(rates, origin, resolution, origins, directions, t0, chord, n_nodes: int):
     """Native core of :meth:`~lidarjax.maps.SmoothDecayRateField.integral` (the chords inside
     the grid box; ``csrc/field_integral.cc``): the midpoint rule ``F = chord / K * sum_j
@@ -289,13 +297,7 @@ def chord_integral(rates, origin, resolution, origins, directions, t0, chord, n_
         f"lidarjax_chord_integral_{_dt(dtype)}", (f, f2, f2, f, f), vmap_method="sequential"
     )
     return call(
-        rates,
-        jnp.asarray(origin, dtype).reshape(2),
-        jnp.asarray(resolution, dtype).reshape(()),
-        jnp.asarray(origins, dtype),
-        jnp.asarray(directions, dtype),
-        jnp.asarray(t0, dtype),
-        jnp.asarray(chord, dtype),
+        *_chord_args(rates, origin, resolution, origins, directions, t0, chord),
         n_nodes=np.int64(n_nodes),
     )
 
@@ -312,13 +314,7 @@ def chord_hessian(rates, origin, resolution, origins, directions, t0, chord, n_n
         vmap_method="sequential",
     )
     return call(
-        rates,
-        jnp.asarray(origin, dtype).reshape(2),
-        jnp.asarray(resolution, dtype).reshape(()),
-        jnp.asarray(origins, dtype),
-        jnp.asarray(directions, dtype),
-        jnp.asarray(t0, dtype),
-        jnp.asarray(chord, dtype),
+        *_chord_args(rates, origin, resolution, origins, directions, t0, chord),
         n_nodes=np.int64(n_nodes),
     )
 

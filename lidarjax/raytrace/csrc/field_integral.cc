@@ -56,6 +56,36 @@ struct Sums {
   double f, gx, gy, tgx, tgy, sgd;
 };
 
+// The bilinear patch of the node at p = o + t d (t = t0 + c s): the weights (wx, wy) in
+// double and the four clamped corner rates, as SmoothDecayRateField._interpolate has them
+// (u = (p - origin) / res - 1/2, i = floor(u), weights u - i, indices clipped).
+template <typename T>
+struct Patch {
+  double wx, wy, a00, a10, a01, a11;
+};
+
+template <typename T>
+inline Patch<T> patch_at(const T* rates, int64_t nx, int64_t ny, T ox0, T oy0, T inv_res, T ox,
+                         T oy, T dx, T dy, T t) {
+  const T ux = (ox + t * dx - ox0) * inv_res - T(0.5);
+  const T uy = (oy + t * dy - oy0) * inv_res - T(0.5);
+  // floor without a libm call (GCC emits one without SSE4.1): truncation, then one down
+  // for negative non-integers; exact because |u| < 2^52 (the handlers' reach check)
+  int64_t i = static_cast<int64_t>(ux);
+  i -= static_cast<T>(i) > ux ? 1 : 0;
+  int64_t jj = static_cast<int64_t>(uy);
+  jj -= static_cast<T>(jj) > uy ? 1 : 0;
+  const int64_t i0 = i < 0 ? 0 : (i > nx - 1 ? nx - 1 : i);
+  const int64_t i1 = i + 1 < 0 ? 0 : (i + 1 > nx - 1 ? nx - 1 : i + 1);
+  const int64_t j0 = jj < 0 ? 0 : (jj > ny - 1 ? ny - 1 : jj);
+  const int64_t j1 = jj + 1 < 0 ? 0 : (jj + 1 > ny - 1 ? ny - 1 : jj + 1);
+  const T* r0 = rates + i0 * ny;
+  const T* r1 = rates + i1 * ny;
+  return {static_cast<double>(ux - static_cast<T>(i)), static_cast<double>(uy - static_cast<T>(jj)),
+          static_cast<double>(r0[j0]), static_cast<double>(r1[j0]), static_cast<double>(r0[j1]),
+          static_cast<double>(r1[j1])};
+}
+
 template <typename T>
 inline void ray_sums(const T* rates, int64_t nx, int64_t ny, T ox0, T oy0, T inv_res, T ox,
                      T oy, T dx, T dy, T t0, T c, const T* s_nodes, int64_t K, Sums& out) {
@@ -64,24 +94,8 @@ inline void ray_sums(const T* rates, int64_t nx, int64_t ny, T ox0, T oy0, T inv
   for (int64_t j = 0; j < K; ++j) {
     const T s = s_nodes[j];
     const T t = t0 + c * s;
-    const T ux = (ox + t * dx - ox0) * inv_res - T(0.5);
-    const T uy = (oy + t * dy - oy0) * inv_res - T(0.5);
-    // floor without a libm call (not inlined without SSE4.1): truncation, then one down
-    // for negative non-integers; exact because |u| < 2^52 (the handler's reach check)
-    int64_t i = static_cast<int64_t>(ux);
-    i -= static_cast<T>(i) > ux ? 1 : 0;
-    int64_t jj = static_cast<int64_t>(uy);
-    jj -= static_cast<T>(jj) > uy ? 1 : 0;
-    const double wx = static_cast<double>(ux - static_cast<T>(i));
-    const double wy = static_cast<double>(uy - static_cast<T>(jj));
-    // clipped indices (the clamped border)
-    const int64_t i0 = i < 0 ? 0 : (i > nx - 1 ? nx - 1 : i);
-    const int64_t i1 = i + 1 < 0 ? 0 : (i + 1 > nx - 1 ? nx - 1 : i + 1);
-    const int64_t j0 = jj < 0 ? 0 : (jj > ny - 1 ? ny - 1 : jj);
-    const int64_t j1 = jj + 1 < 0 ? 0 : (jj + 1 > ny - 1 ? ny - 1 : jj + 1);
-    const T* r0 = rates + i0 * ny;
-    const T* r1 = rates + i1 * ny;
-    const double a00 = r0[j0], a10 = r1[j0], a01 = r0[j1], a11 = r1[j1];
+    const Patch<T> q = patch_at<T>(rates, nx, ny, ox0, oy0, inv_res, ox, oy, dx, dy, t);
+    const double wx = q.wx, wy = q.wy, a00 = q.a00, a10 = q.a10, a01 = q.a01, a11 = q.a11;
     const double bx0 = a10 - a00, bx1 = a11 - a01;  // slopes along x at y-rows j0, j1
     const double v0 = a00 + wx * bx0, v1 = a01 + wx * bx1;
     const double dfx = (bx0 + wy * (bx1 - bx0)) * dinv_res;
@@ -360,20 +374,8 @@ void ray_hessian(const Inputs<T>& in, int64_t k, const T* s_nodes, int64_t K, do
   for (int64_t j = 0; j < K; ++j) {
     const T s = s_nodes[j];
     const T t = t0 + c * s;
-    const T ux = (ox + t * dx - in.ox0) * tinv_res - T(0.5);
-    const T uy = (oy + t * dy - in.oy0) * tinv_res - T(0.5);
-    int64_t i = static_cast<int64_t>(ux);
-    i -= static_cast<T>(i) > ux ? 1 : 0;
-    int64_t jj = static_cast<int64_t>(uy);
-    jj -= static_cast<T>(jj) > uy ? 1 : 0;
-    const double wx = static_cast<double>(ux - static_cast<T>(i));
-    const double wy = static_cast<double>(uy - static_cast<T>(jj));
-    const int64_t i0 = i < 0 ? 0 : (i > nx - 1 ? nx - 1 : i);
-    const int64_t i1 = i + 1 < 0 ? 0 : (i + 1 > nx - 1 ? nx - 1 : i + 1);
-    const int64_t j0 = jj < 0 ? 0 : (jj > ny - 1 ? ny - 1 : jj);
-    const int64_t j1 = jj + 1 < 0 ? 0 : (jj + 1 > ny - 1 ? ny - 1 : jj + 1);
-    const double a00 = in.R[i0 * ny + j0], a10 = in.R[i1 * ny + j0];
-    const double a01 = in.R[i0 * ny + j1], a11 = in.R[i1 * ny + j1];
+    const Patch<T> q = patch_at<T>(in.R, nx, ny, in.ox0, in.oy0, tinv_res, ox, oy, dx, dy, t);
+    const double wx = q.wx, wy = q.wy, a00 = q.a00, a10 = q.a10, a01 = q.a01, a11 = q.a11;
     const double gx = ((a10 - a00) * (1 - wy) + (a11 - a01) * wy) * inv_res;
     const double gy = ((a01 - a00) * (1 - wx) + (a11 - a10) * wx) * inv_res;
     const double h = (a11 - a10 - a01 + a00) * inv_res * inv_res;

@@ -1230,6 +1230,7 @@ class SlamExperimentConfig:
     """``configs/slam.yaml``."""
 
     seed: int = _f(nonnegative)
+    seeds: list[int] | None = _f(nonempty, unique, each=nonnegative)  # null: [seed]
     logs: list[str] = MISSING
     max_scans: int | None = _f(count)
     azimuth_layout: str = _f(one_of("spread", "sweep"))

@@ -2,7 +2,8 @@
 
 The logs' odometry equals their corrected poses, so a drifting wheel odometry is simulated
 from the corrected poses (``lidarjax.sim.wheel_odometry``, ``odometry`` settings, seed
-``seed``). Every variant starts from it and is scored against the corrected poses:
+``seed``, or each of ``seeds``). Every variant starts from it and is scored against the
+corrected poses:
 
 - ``decay_rate_joint``: :func:`lidarjax.slam.run_slam` (decay-rate front end, loop
   closures, pose graph, joint optimisation of all poses and the field);
@@ -36,11 +37,18 @@ can referee: where an estimate is more consistent than the reference, ATE agains
 reference no longer ranks it. The decay-rate front end runs once per log and is shared by the
 three decay-rate variants (so are its loop closures and pose graph).
 
+Several drift seeds (``seeds=[0,1,2,3,4,5]``) run every log and variant once per seed;
+``results.json`` then has each seed's results under ``by_seed`` and ``seed_summary``
+(per log and variant: the ATE RMSE per seed, its mean, median and worst), and
+``results.md`` ends with that summary. Round-off and the drift seed move single runs by
+as much as the systems differ (docs/results/slam.md), so rank systems over several seeds.
+
 Writes ``results.json``, ``results.md``, the trajectories in TUM format
 (``<log>_<variant>.tum`` and ``<log>_ground_truth.tum``; the timestamps are scan indices,
 since some logs' are constant or not monotone), ``trajectories.png`` (map and
 trajectories of ``figure_log`` against the ground truth) and ``errors.png`` (position
-error over the scans). E.g. ``python experiments/slam.py logs=[intel] max_scans=120``.
+error over the scans), both of the first seed. E.g. ``python experiments/slam.py
+logs=[intel] max_scans=120``.
 """
 
 from __future__ import annotations
@@ -116,11 +124,145 @@ def _scan_rate(stamps) -> float | None:
     return float(dt.size / (stamps[-1] - stamps[0]))
 
 
+def _run_log(cfg, name, seed, out, front, loops, back, multi):
+    """Every variant on one log from the drift seed's odometry: ``(results of the log,
+    the reference's consistency scores, the figures' arguments)``. Writes the TUM files
+    ``<log>_<variant>.tum`` (``<log>_<variant>_seed<seed>.tum`` where several seeds run)."""
+    o = cfg.odometry
+    log = load_carmen(fetch(name), azimuth_layout=cfg.azimuth_layout)
+    n = log.n_scans if cfg.max_scans is None else min(cfg.max_scans, log.n_scans)
+    gt = log.poses[:n]
+    ranges = np.minimum(log.ranges_m[:n], log.max_range_m)
+    az = log.azimuths_rad
+    odo = wheel_odometry(
+        gt,
+        seed=seed,
+        sigma_trans_rel=o.sigma_trans_rel,
+        sigma_rot_per_m=float(np.deg2rad(o.sigma_rot_per_m_deg)),
+        heading_bias_per_m=float(np.deg2rad(o.heading_bias_per_m_deg)),
+        sigma_rot_per_rad=o.sigma_rot_per_rad,
+    )
+    res = cfg.map_resolution_m
+    lo = np.floor((gt[:, :2].min(0) - back.range_cap_m) / res) - 2
+    hi = np.ceil((gt[:, :2].max(0) + back.range_cap_m) / res) + 2
+    spec = GridSpec(lo * res, res, tuple(int(v) for v in hi - lo))
+    gt_map = _grid(gt, ranges, az, spec, back.range_cap_m)
+    rate = _scan_rate(log.timestamps_s[:n])
+    est: dict[str, np.ndarray] = {"odometry": odo}
+    info: dict[str, dict] = {"odometry": {}}
+    want = set(cfg.variants)
+    edges = np.stack([np.arange(n - 1), np.arange(1, n)], 1)
+    inc = slam._front_end.between_np(odo[:-1], odo[1:])
+    sig = slam.odometry_sigmas(inc, front)
+    dr = [
+        v
+        for v in ("decay_rate_joint", "decay_rate_alternating", "decay_rate_pose_graph")
+        if v in want
+    ]
+    if dr:
+        # the front end, loops and pose graph once; each back end from the pose graph
+        base = slam.run_slam(
+            ranges,
+            az,
+            odo,
+            slam.SlamConfig(
+                front=front,
+                loops=loops,
+                back=back,
+                back_end="none",
+                robust_chain=cfg.pose_graph.robust_chain,
+                revisits=cfg.pose_graph.revisits,
+                loop_rounds=cfg.loops.rounds,
+            ),
+            progress=True,
+        )
+        fe_rate = n / base.seconds["front_end"]
+        common = {
+            "front_end_scans_per_s": fe_rate,
+            "front_end_rtf": None if rate is None else fe_rate / rate,
+            "n_loops": int(len(base.loops.edges)),
+            "n_revisits": int(len(base.revisits.edges)),
+            "seconds_front_end": base.seconds["front_end"],
+            "seconds_loops": base.seconds["loops"],
+            "seconds_pose_graph": base.seconds["pose_graph"],
+            "front_end_ate_rmse_m": absolute_trajectory_error(base.front_end_poses, gt).rmse_m,
+        }
+        for v in dr:
+            t = time.perf_counter()
+            if v == "decay_rate_pose_graph":
+                est[v], extra = base.pose_graph_poses, {}
+            else:
+                f = slam.optimize_joint if v.endswith("joint") else slam.optimize_alternating
+                b = f(base.pose_graph_poses, az, ranges, edges, inc, sig, back)
+                est[v] = b.poses
+                extra = {
+                    "seconds_back_end": b.seconds,
+                    "back_end_seconds_per_iteration": b.seconds_per_iteration,
+                    "objective_nats": b.objective,
+                }
+            info[v] = {**common, **extra, "seconds_variant": time.perf_counter() - t}
+    if "reference_back_end" in want:
+        t = time.perf_counter()
+        b = slam.optimize_alternating(gt, az, ranges, edges, inc, sig, back)
+        est["reference_back_end"] = b.poses
+        info["reference_back_end"] = {
+            "seconds_back_end": b.seconds,
+            "back_end_seconds_per_iteration": b.seconds_per_iteration,
+            "objective_nats": b.objective,
+            "seconds_variant": time.perf_counter() - t,
+        }
+    if "endpoint" in want:
+        ep = slam.run_slam(
+            ranges,
+            az,
+            odo,
+            slam.SlamConfig(
+                front=slam.FrontEndConfig(**{**front.__dict__, "model": "endpoint"}),
+                loops=loops,
+                back=back,
+                back_end="none",
+                robust_chain=cfg.pose_graph.robust_chain,
+                revisits=cfg.pose_graph.revisits,
+                loop_rounds=cfg.loops.rounds,
+            ),
+            progress=True,
+        )
+        est["endpoint"] = ep.poses
+        info["endpoint"] = {
+            "n_loops": int(len(ep.loops.edges)),
+            "n_revisits": int(len(ep.revisits.edges)),
+            "front_end_scans_per_s": n / ep.seconds["front_end"],
+            "seconds": sum(ep.seconds.values()),
+        }
+    if "icp_gtsam" in want:
+        t = time.perf_counter()
+        ic = slam.icp_pose_graph_slam(ranges, az, odo, max_range_m=log.usable_range_m)
+        est["icp_gtsam"] = ic.poses
+        info["icp_gtsam"] = {"n_loops": int(len(ic.loops)), "seconds": time.perf_counter() - t}
+    per = {}
+    traj = {}
+    tag = f"_seed{seed}" if multi else ""
+    write_tum(out / f"{name}_ground_truth.tum", np.arange(n, dtype=float), gt)
+    for v, p in est.items():
+        s = _scores(p, gt, ranges, az, spec, gt_map, cfg, back)
+        write_tum(out / f"{name}_{v}{tag}.tum", np.arange(n, dtype=float), p)
+        per[v] = {**{k: x for k, x in s.items() if k != "errors_m"}, **info[v]}
+        traj[(name, v)] = (absolute_trajectory_error(p, gt).aligned, s["errors_m"])
+    ref = _consistency(gt, ranges, az, back, cfg.loops.min_separation)
+    result = {
+        "n_scans": n,
+        "azimuth_layout": cfg.azimuth_layout,
+        "scan_rate_hz": rate,
+        "variants": per,
+        "reference_consistency": ref,
+    }
+    return result, ref, (gt, gt_map, spec, est, traj)
+
+
 @hydra.main(config_path="../configs", config_name="slam", version_base="1.3")
 def main(cfg: DictConfig) -> None:
     validate(cfg, "slam")
     out = output_dir()
-    o = cfg.odometry
     front = slam.FrontEndConfig(
         resolution_m=cfg.front_end.resolution_m,
         range_cap_m=cfg.front_end.range_cap_m,
@@ -141,147 +283,47 @@ def main(cfg: DictConfig) -> None:
         rounds=cfg.back_end.rounds,
         backend=cfg.front_end.backend,
     )
-    results: dict = {"run_info": run_info(), "logs": {}}
+    seeds = [cfg.seed] if cfg.seeds is None else [int(x) for x in cfg.seeds]
+    multi = len(seeds) > 1
+    results: dict = {"run_info": run_info(), "seeds": seeds, "logs": {}}
     rows = []
-    traj = {}
-    for name in cfg.logs:
-        log = load_carmen(fetch(name), azimuth_layout=cfg.azimuth_layout)
-        n = log.n_scans if cfg.max_scans is None else min(cfg.max_scans, log.n_scans)
-        gt = log.poses[:n]
-        ranges = np.minimum(log.ranges_m[:n], log.max_range_m)
-        az = log.azimuths_rad
-        odo = wheel_odometry(
-            gt,
-            seed=cfg.seed,
-            sigma_trans_rel=o.sigma_trans_rel,
-            sigma_rot_per_m=float(np.deg2rad(o.sigma_rot_per_m_deg)),
-            heading_bias_per_m=float(np.deg2rad(o.heading_bias_per_m_deg)),
-            sigma_rot_per_rad=o.sigma_rot_per_rad,
-        )
-        res = cfg.map_resolution_m
-        lo = np.floor((gt[:, :2].min(0) - back.range_cap_m) / res) - 2
-        hi = np.ceil((gt[:, :2].max(0) + back.range_cap_m) / res) + 2
-        spec = GridSpec(lo * res, res, tuple(int(v) for v in hi - lo))
-        gt_map = _grid(gt, ranges, az, spec, back.range_cap_m)
-        rate = _scan_rate(log.timestamps_s[:n])
-        est: dict[str, np.ndarray] = {"odometry": odo}
-        info: dict[str, dict] = {"odometry": {}}
-        want = set(cfg.variants)
-        edges = np.stack([np.arange(n - 1), np.arange(1, n)], 1)
-        inc = slam._front_end.between_np(odo[:-1], odo[1:])
-        sig = slam.odometry_sigmas(inc, front)
-        dr = [
-            v
-            for v in ("decay_rate_joint", "decay_rate_alternating", "decay_rate_pose_graph")
-            if v in want
-        ]
-        if dr:
-            # the front end, loops and pose graph once; each back end from the pose graph
-            base = slam.run_slam(
-                ranges,
-                az,
-                odo,
-                slam.SlamConfig(
-                    front=front,
-                    loops=loops,
-                    back=back,
-                    back_end="none",
-                    robust_chain=cfg.pose_graph.robust_chain,
-                    revisits=cfg.pose_graph.revisits,
-                    loop_rounds=cfg.loops.rounds,
-                ),
-                progress=True,
-            )
-            fe_rate = n / base.seconds["front_end"]
-            common = {
-                "front_end_scans_per_s": fe_rate,
-                "front_end_rtf": None if rate is None else fe_rate / rate,
-                "n_loops": int(len(base.loops.edges)),
-                "n_revisits": int(len(base.revisits.edges)),
-                "seconds_front_end": base.seconds["front_end"],
-                "seconds_loops": base.seconds["loops"],
-                "seconds_pose_graph": base.seconds["pose_graph"],
-                "front_end_ate_rmse_m": absolute_trajectory_error(base.front_end_poses, gt).rmse_m,
+    ate: dict = {}  # (log, variant) -> ATE RMSE per seed
+    for seed in seeds:
+        logs = results["logs"] if not multi else {}
+        if multi:
+            results.setdefault("by_seed", {})[str(seed)] = {"logs": logs}
+        for name in cfg.logs:
+            per, ref, figure = _run_log(cfg, name, seed, out, front, loops, back, multi)
+            logs[name] = per
+            for v, r in per["variants"].items():
+                rows.append((name, seed, v, r))
+                ate.setdefault((name, v), []).append(r["ate_rmse_m"])
+            rows.append((name, seed, "reference (corrected poses)", ref))
+            write_results(out, results=results, partial=True)
+            if name == cfg.figure_log and seed == seeds[0]:
+                _figures(out, name, *figure)
+    if multi:
+        results["seed_summary"] = {
+            name: {
+                v: {
+                    "ate_rmse_m": a,
+                    "mean_m": float(np.mean(a)),
+                    "median_m": float(np.median(a)),
+                    "worst_m": float(np.max(a)),
+                }
+                for (n2, v), a in ate.items()
+                if n2 == name
             }
-            for v in dr:
-                t = time.perf_counter()
-                if v == "decay_rate_pose_graph":
-                    est[v], extra = base.pose_graph_poses, {}
-                else:
-                    f = slam.optimize_joint if v.endswith("joint") else slam.optimize_alternating
-                    b = f(base.pose_graph_poses, az, ranges, edges, inc, sig, back)
-                    est[v] = b.poses
-                    extra = {
-                        "seconds_back_end": b.seconds,
-                        "back_end_seconds_per_iteration": b.seconds_per_iteration,
-                        "objective_nats": b.objective,
-                    }
-                info[v] = {**common, **extra, "seconds_variant": time.perf_counter() - t}
-        if "reference_back_end" in want:
-            t = time.perf_counter()
-            b = slam.optimize_alternating(gt, az, ranges, edges, inc, sig, back)
-            est["reference_back_end"] = b.poses
-            info["reference_back_end"] = {
-                "seconds_back_end": b.seconds,
-                "back_end_seconds_per_iteration": b.seconds_per_iteration,
-                "objective_nats": b.objective,
-                "seconds_variant": time.perf_counter() - t,
-            }
-        if "endpoint" in want:
-            ep = slam.run_slam(
-                ranges,
-                az,
-                odo,
-                slam.SlamConfig(
-                    front=slam.FrontEndConfig(**{**front.__dict__, "model": "endpoint"}),
-                    loops=loops,
-                    back=back,
-                    back_end="none",
-                    robust_chain=cfg.pose_graph.robust_chain,
-                    revisits=cfg.pose_graph.revisits,
-                    loop_rounds=cfg.loops.rounds,
-                ),
-                progress=True,
-            )
-            est["endpoint"] = ep.poses
-            info["endpoint"] = {
-                "n_loops": int(len(ep.loops.edges)),
-                "n_revisits": int(len(ep.revisits.edges)),
-                "front_end_scans_per_s": n / ep.seconds["front_end"],
-                "seconds": sum(ep.seconds.values()),
-            }
-        if "icp_gtsam" in want:
-            t = time.perf_counter()
-            ic = slam.icp_pose_graph_slam(ranges, az, odo, max_range_m=log.usable_range_m)
-            est["icp_gtsam"] = ic.poses
-            info["icp_gtsam"] = {"n_loops": int(len(ic.loops)), "seconds": time.perf_counter() - t}
-        per = {}
-        write_tum(out / f"{name}_ground_truth.tum", np.arange(n, dtype=float), gt)
-        for v, p in est.items():
-            s = _scores(p, gt, ranges, az, spec, gt_map, cfg, back)
-            write_tum(out / f"{name}_{v}.tum", np.arange(n, dtype=float), p)
-            per[v] = {**{k: x for k, x in s.items() if k != "errors_m"}, **info[v]}
-            traj[(name, v)] = (absolute_trajectory_error(p, gt).aligned, s["errors_m"])
-            rows.append((name, v, per[v]))
-        ref = _consistency(gt, ranges, az, back, cfg.loops.min_separation)
-        rows.append((name, "reference (corrected poses)", ref))
-        results["logs"][name] = {
-            "n_scans": n,
-            "azimuth_layout": cfg.azimuth_layout,
-            "scan_rate_hz": rate,
-            "variants": per,
-            "reference_consistency": ref,
+            for name in cfg.logs
         }
-        write_results(out, results=results, partial=True)
-        if name == cfg.figure_log:
-            _figures(out, name, gt, gt_map, spec, est, traj)
     md = [
-        f"| log | variant | ATE RMSE (m) | ATE mean (m) | RPE/{cfg.rpe_delta_m:g} m (m, deg) "
-        "| p_ref RMSE | loops (revisits) | front end scans/s (RTF) "
+        "| log | seed | variant | ATE RMSE (m) | ATE mean (m) "
+        f"| RPE/{cfg.rpe_delta_m:g} m (m, deg) | p_ref RMSE | loops (revisits) "
+        "| front end scans/s (RTF) "
         "| cross-visit mean / median (mm, share) | LL per ray (nats) |",
-        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
-    for name, v, r in rows:
+    for name, seed, v, r in rows:
         rtf = r.get("front_end_rtf")
         rv = f" ({r['n_revisits']})" if "n_revisits" in r else ""
         fe = r.get("front_end_scans_per_s")
@@ -291,14 +333,29 @@ def main(cfg: DictConfig) -> None:
             f"{fmt(r['log_likelihood_per_ray'])} |"
         )
         if "ate_rmse_m" not in r:  # the reference: consistency only
-            md.append(f"| {name} | {v} | – | – | – | – | – | – | {cons}")
+            md.append(f"| {name} | {seed} | {v} | – | – | – | – | – | – | {cons}")
             continue
         md.append(
-            f"| {name} | {v} | {fmt(r['ate_rmse_m'])} | {fmt(r['ate_mean_m'])} | "
+            f"| {name} | {seed} | {v} | {fmt(r['ate_rmse_m'])} | {fmt(r['ate_mean_m'])} | "
             f"{fmt(r['rpe_trans_rmse_m'])}, {fmt(r['rpe_rot_rmse_deg'], 2)} | "
             f"{fmt(r['p_ref_rmse'])} | {r.get('n_loops', '–')}{rv} | "
             f"{fmt(fe, 2) if fe else '–'}{f' ({rtf:.1f})' if rtf else ''} | {cons}"
         )
+    if multi:
+        md += [
+            "",
+            f"ATE RMSE (m) over the drift seeds {seeds}:",
+            "",
+            "| log | variant | per seed | mean | median | worst |",
+            "|---|---|---|---:|---:|---:|",
+        ]
+        for name, per_v in results["seed_summary"].items():
+            for v, a in per_v.items():
+                each = " / ".join(fmt(x) for x in a["ate_rmse_m"])
+                md.append(
+                    f"| {name} | {v} | {each} | {fmt(a['mean_m'])} | {fmt(a['median_m'])} "
+                    f"| {fmt(a['worst_m'])} |"
+                )
     write_results(
         out,
         results=results,

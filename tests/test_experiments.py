@@ -545,6 +545,7 @@ def test_slam_small(tmp_path):
         "icp_gtsam,reference_back_end]",
     )
     assert res["logs"]["orebro"]["azimuth_layout"] == "sweep"  # configs/slam.yaml
+    assert res["seeds"] == [0] and "by_seed" not in res and "seed_summary" not in res
     per = res["logs"]["orebro"]["variants"]
     assert set(per) == {
         "odometry",
@@ -579,3 +580,42 @@ def test_slam_small(tmp_path):
         "results.md",
     ):
         assert (tmp_path / name).is_file(), name
+
+
+@pytest.mark.slow
+def test_slam_seeds(tmp_path):
+    """experiments/slam.py over two drift seeds: each seed's results, and the summary's
+    mean / median / worst recomputed from them; the TUM files per seed."""
+    res = run_experiment(
+        "slam",
+        tmp_path,
+        "logs=[orebro]",
+        "figure_log=orebro",
+        "max_scans=25",
+        "loops.min_separation=20",
+        "seeds=[3,1]",
+        "variants=[decay_rate_pose_graph]",
+    )
+    assert res["seeds"] == [3, 1] and res["logs"] == {}
+    assert set(res["by_seed"]) == {"3", "1"}
+    summary = res["seed_summary"]["orebro"]
+    assert set(summary) == {"odometry", "decay_rate_pose_graph"}
+    for v, s in summary.items():
+        each = [res["by_seed"][k]["logs"]["orebro"]["variants"][v]["ate_rmse_m"] for k in "31"]
+        assert s["ate_rmse_m"] == each
+        assert s["mean_m"] == pytest.approx(np.mean(each), rel=1e-12)
+        assert s["median_m"] == pytest.approx(np.median(each), rel=1e-12)
+        assert s["worst_m"] == max(each)
+    # the seeds drift differently (the odometry differs), and so do the estimates
+    assert summary["odometry"]["ate_rmse_m"][0] != summary["odometry"]["ate_rmse_m"][1]
+    for seed in (3, 1):
+        for v in ("odometry", "decay_rate_pose_graph"):
+            tum = tmp_path / f"orebro_{v}_seed{seed}.tum"
+            assert np.loadtxt(tum).shape == (25, 8)
+    a = np.loadtxt(tmp_path / "orebro_decay_rate_pose_graph_seed3.tum")
+    b = np.loadtxt(tmp_path / "orebro_decay_rate_pose_graph_seed1.tum")
+    assert not np.allclose(a, b)
+    md = (tmp_path / "results.md").read_text()
+    assert "over the drift seeds [3, 1]" in md
+    row = next(ln for ln in md.splitlines() if ln.startswith("| orebro | decay_rate_pose_graph |"))
+    assert f"{summary['decay_rate_pose_graph']['median_m']:.3f}" in row

@@ -1201,6 +1201,7 @@ class SlamFrontEnd:
     range_cap_m: float = _f(positive)
     blur_schedule_m: list[float] = _f(nonempty, each=nonnegative)
     backend: str = _f(one_of("auto", "native", "jax"))
+    grazing_cells: float = _f(nonnegative)
 
 
 @dataclass

@@ -307,6 +307,7 @@ def main(cfg: DictConfig) -> None:
         window_m=cfg.front_end.range_cap_m + 2.0,
         blur_schedule_m=tuple(cfg.front_end.blur_schedule_m),
         backend=cfg.front_end.backend,
+        grazing_cells=cfg.front_end.grazing_cells,
     )
     loops = slam.LoopConfig(
         radius_m=cfg.loops.radius_m,

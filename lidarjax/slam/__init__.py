@@ -15,6 +15,8 @@ from ._front_end import FrontEndConfig as FrontEndConfig
 from ._front_end import FrontEndResult as FrontEndResult
 from ._front_end import GridMap as GridMap
 from ._front_end import MatchResult as MatchResult
+from ._front_end import grazing_lengths as grazing_lengths
+from ._front_end import grid_map as grid_map
 from ._front_end import match_scan as match_scan
 from ._front_end import odometry_sigmas as odometry_sigmas
 from ._front_end import run_front_end as run_front_end

@@ -46,7 +46,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..maps import blur
-from ._front_end import FrontEndConfig, GridMap, between_np, compose_np, match_scan
+from ._front_end import FrontEndConfig, GridMap, between_np, compose_np, grid_map, match_scan
 from ._search import correlative_search
 
 __all__ = ["MIN_MEAN_LOG_LIKELIHOOD", "LoopConfig", "Loops", "find_loops", "find_revisits"]
@@ -471,7 +471,7 @@ def find_loops(
             lo, hi = max(0, j - cfg.submap_half), min(n, j + cfg.submap_half + 1)
             # the submap in the frame of scan j
             local = between_np(np.broadcast_to(poses[j], (hi - lo, 3)), poses[lo:hi])
-            grid = GridMap(fcfg.resolution_m, fcfg.range_cap_m)
+            grid = grid_map(fcfg)
             for k in range(hi - lo):
                 grid.add_scan(local[k], az, rng[lo + k])
             guess = between_np(poses[j], poses[i])

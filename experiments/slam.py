@@ -11,7 +11,8 @@ corrected poses:
   <-> poses, Eq. 7.10);
 - ``decay_rate_pose_graph``: the same without a back end;
 - ``endpoint``: the same pipeline with the endpoint (likelihood-field) model in the front
-  end and the loop search, no back end;
+  end and the loop search, no back end (and no grazing cut of the map's free length:
+  the model has no free-space term);
 - ``icp_gtsam``: the classical baseline (:func:`lidarjax.slam.icp_pose_graph_slam`, GICP
   scan-to-submap registration and a GTSAM pose graph with loop closures; needs
   ``lidarjax[slam]``);
@@ -255,7 +256,11 @@ def _run_log(cfg, name, seed, out, front, loops, back, multi):
             az,
             odo,
             slam.SlamConfig(
-                front=slam.FrontEndConfig(**{**front.__dict__, "model": "endpoint"}),
+                # the endpoint model has no free-space term: its map keeps every ray's
+                # free length (grazing_cells only changes which cells count as mapped)
+                front=slam.FrontEndConfig(
+                    **{**front.__dict__, "model": "endpoint", "grazing_cells": 0.0}
+                ),
                 loops=loops,
                 back=back,
                 back_end="none",

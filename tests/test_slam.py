@@ -28,6 +28,7 @@ from lidarjax.slam import (
     find_loops,
     find_revisits,
     front_end_pose_graph,
+    grid_map,
     joint_objective,
     match_scan,
     odometry_sigmas,
@@ -264,7 +265,7 @@ def test_front_end_on_the_office(office_short):
     assert r.plausible.all()
     k = 7
     cfg = FrontEndConfig()
-    grid = GridMap(cfg.resolution_m, cfg.range_cap_m)
+    grid = grid_map(cfg)  # the front end's map: its resolution, cap and grazing
     for j in range(k):
         grid.add_scan(r.poses[j], AZ, ranges[j])
     inc = between_np(odo[k - 1], odo[k])
@@ -313,7 +314,7 @@ def test_match_scan_recovers_a_perturbed_pose(office_short, backend):
     # scans 15-31 sometimes better, sometimes worse than at 10 m). Both backends of the
     # optical depth (the native kernel is the default where it is built).
     cfg = FrontEndConfig(range_cap_m=10.0, window_m=12.0, backend=backend)
-    grid = GridMap(cfg.resolution_m, cfg.range_cap_m)
+    grid = grid_map(cfg)
     for k in range(0, truth.shape[0], 2):  # the map of the even scans at the true poses
         grid.add_scan(truth[k], AZ, ranges[k])
     if backend == "native" and not _native.available():

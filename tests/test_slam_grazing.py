@@ -83,7 +83,8 @@ def test_grid_map_grazing_zero_is_the_plain_map():
     poses = world.trajectory(100, jitter_m=0.2)[:3]
     az = np.linspace(-np.pi / 2, np.pi / 2, 181)
     ranges = simulate_scans(world, poses, az, max_range_m=10.0, noise_sigma_m=0.01, seed=0)
-    a, b = GridMap(0.05, 10.0), grid_map(FrontEndConfig(range_cap_m=10.0, window_m=12.0))
+    off = FrontEndConfig(range_cap_m=10.0, window_m=12.0, grazing_cells=0.0)
+    a, b = GridMap(0.05, 10.0), grid_map(off)
     for p, rr in zip(poses, ranges):
         a.add_scan(p, az, rr)
         b.add_scan(p, az, rr)

@@ -131,3 +131,19 @@ def test_grid_map_rejects_bad_grazing_values():
         GridMap(0.05, 10.0, grazing_m=-0.1)
     with pytest.raises(ValueError, match="grazing_max_m"):
         GridMap(0.05, 10.0, grazing_m=0.1, grazing_max_m=0.05)
+
+
+@pytest.mark.parametrize(
+    ("args", "name"),
+    [
+        ((np.zeros(3), np.ones(4), 20.0, 0.05, 1.0), "azimuths and ranges"),
+        ((np.zeros((2, 3)), np.ones((2, 3)), 20.0, 0.05, 1.0), "azimuths and ranges"),
+        ((np.zeros(3), np.array([1.0, np.nan, 1.0]), 20.0, 0.05, 1.0), "ranges"),
+        ((np.zeros(3), np.array([1.0, -1.0, 1.0]), 20.0, 0.05, 1.0), "ranges"),
+        ((np.zeros(3), np.ones(3), 20.0, -0.05, 1.0), "delta_m"),
+        ((np.zeros(3), np.ones(3), 20.0, 0.05, 0.01), "max_m"),
+    ],
+)
+def test_grazing_lengths_rejects_bad_input(args, name):
+    with pytest.raises(ValueError, match=name):
+        grazing_lengths(*args)

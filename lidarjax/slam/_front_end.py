@@ -328,10 +328,10 @@ def grazing_lengths(
     max_m: float,
     max_bend_rad: float = 0.26,
 ) -> np.ndarray:
-    """``[b]`` length (m) of the last stretch of each HIT ray that runs within ``delta_m``
-    of the surface it hits: ``delta_m / sin(theta)``, at most ``max_m`` and the range,
-    where ``theta``
-    is the angle between the ray and the surface (0 for no-returns).
+    """``[b]`` length (m) of the last stretch of each HIT ray (``ranges < range_cap_m``)
+    that runs within ``delta_m`` of the surface it hits: ``delta_m / sin(theta)``, at most
+    ``max_m`` and the range, where ``theta`` is the angle between the ray and the surface
+    (0 for no-returns). ``azimuths`` (rad) and ``ranges`` (m) are ``[b]``, in beam order.
 
     The surface's direction at a return is that of the line through its two neighbouring
     returns, in the sensor frame (so it does not depend on the pose), where the two
@@ -343,6 +343,16 @@ def grazing_lengths(
     """
     az = np.asarray(azimuths, float)
     r = np.asarray(ranges, float)
+    if az.ndim != 1 or r.shape != az.shape:
+        raise ValueError(
+            f"azimuths and ranges must be [b] arrays of one length, got {az.shape}, {r.shape}"
+        )
+    if not (np.all(np.isfinite(az)) and np.all(np.isfinite(r)) and np.all(r >= 0)):
+        raise ValueError("azimuths must be finite and ranges finite and >= 0")
+    if not (math.isfinite(delta_m) and delta_m >= 0):
+        raise ValueError(f"delta_m must be finite and >= 0, got {delta_m!r}")
+    if not (math.isfinite(max_m) and max_m >= delta_m and max_m > 0):
+        raise ValueError(f"max_m must be finite, > 0 and >= delta_m, got {max_m!r}")
     hit = r < range_cap_m
     p = np.stack([r * np.cos(az), r * np.sin(az)], 1)
     out = np.where(hit, delta_m, 0.0)

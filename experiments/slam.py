@@ -54,6 +54,7 @@ logs=[intel] max_scans=120``.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 
 import hydra
@@ -169,7 +170,7 @@ def _error_budget(base, odo, gt, scfg) -> dict:
 
 def _run_log(cfg, name, seed, out, front, loops, back, multi):
     """Every variant on one log from the drift seed's odometry: ``(results of the log,
-    the reference's consistency scores, the figures' arguments)``. Writes the TUM files
+    the figures' arguments)``. Writes the TUM files
     ``<log>_<variant>.tum`` (``<log>_<variant>_seed<seed>.tum`` where several seeds run)."""
     o = cfg.odometry
     log = load_carmen(fetch(name), azimuth_layout=cfg.azimuth_layout)
@@ -202,17 +203,17 @@ def _run_log(cfg, name, seed, out, front, loops, back, multi):
         for v in ("decay_rate_joint", "decay_rate_alternating", "decay_rate_pose_graph")
         if v in want
     ]
+    scfg = slam.SlamConfig(
+        front=front,
+        loops=loops,
+        back=back,
+        back_end="none",
+        robust_chain=cfg.pose_graph.robust_chain,
+        revisits=cfg.pose_graph.revisits,
+        loop_rounds=cfg.loops.rounds,
+    )
     if dr:
         # the front end, loops and pose graph once; each back end from the pose graph
-        scfg = slam.SlamConfig(
-            front=front,
-            loops=loops,
-            back=back,
-            back_end="none",
-            robust_chain=cfg.pose_graph.robust_chain,
-            revisits=cfg.pose_graph.revisits,
-            loop_rounds=cfg.loops.rounds,
-        )
         base = slam.run_slam(ranges, az, odo, scfg, progress=True)
         fe_rate = n / base.seconds["front_end"]
         common = {
@@ -251,24 +252,11 @@ def _run_log(cfg, name, seed, out, front, loops, back, multi):
             "seconds_variant": time.perf_counter() - t,
         }
     if "endpoint" in want:
+        # the endpoint model has no free-space term: its map keeps every ray's free
+        # length (grazing_cells only changes which cells count as mapped)
+        ep_front = dataclasses.replace(front, model="endpoint", grazing_cells=0.0)
         ep = slam.run_slam(
-            ranges,
-            az,
-            odo,
-            slam.SlamConfig(
-                # the endpoint model has no free-space term: its map keeps every ray's
-                # free length (grazing_cells only changes which cells count as mapped)
-                front=slam.FrontEndConfig(
-                    **{**front.__dict__, "model": "endpoint", "grazing_cells": 0.0}
-                ),
-                loops=loops,
-                back=back,
-                back_end="none",
-                robust_chain=cfg.pose_graph.robust_chain,
-                revisits=cfg.pose_graph.revisits,
-                loop_rounds=cfg.loops.rounds,
-            ),
-            progress=True,
+            ranges, az, odo, dataclasses.replace(scfg, front=ep_front), progress=True
         )
         est["endpoint"] = ep.poses
         info["endpoint"] = {
@@ -291,15 +279,14 @@ def _run_log(cfg, name, seed, out, front, loops, back, multi):
         write_tum(out / f"{name}_{v}{tag}.tum", np.arange(n, dtype=float), p)
         per[v] = {**{k: x for k, x in s.items() if k != "errors_m"}, **info[v]}
         traj[(name, v)] = (absolute_trajectory_error(p, gt).aligned, s["errors_m"])
-    ref = _consistency(gt, ranges, az, back, cfg.loops.min_separation)
     result = {
         "n_scans": n,
         "azimuth_layout": cfg.azimuth_layout,
         "scan_rate_hz": rate,
         "variants": per,
-        "reference_consistency": ref,
+        "reference_consistency": _consistency(gt, ranges, az, back, cfg.loops.min_separation),
     }
-    return result, ref, (gt, gt_map, spec, est, traj)
+    return result, (gt, gt_map, spec, est, traj)
 
 
 @hydra.main(config_path="../configs", config_name="slam", version_base="1.3")
@@ -337,12 +324,12 @@ def main(cfg: DictConfig) -> None:
         if multi:
             results.setdefault("by_seed", {})[str(seed)] = {"logs": logs}
         for name in cfg.logs:
-            per, ref, figure = _run_log(cfg, name, seed, out, front, loops, back, multi)
+            per, figure = _run_log(cfg, name, seed, out, front, loops, back, multi)
             logs[name] = per
             for v, r in per["variants"].items():
                 rows.append((name, seed, v, r))
                 ate.setdefault((name, v), []).append(r["ate_rmse_m"])
-            rows.append((name, seed, "reference (corrected poses)", ref))
+            rows.append((name, seed, "reference (corrected poses)", per["reference_consistency"]))
             write_results(out, results=results, partial=True)
             if name == cfg.figure_log and seed == seeds[0]:
                 _figures(out, name, *figure)

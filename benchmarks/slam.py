@@ -15,7 +15,8 @@ odometry and the revisits; best of 3 after a compiling call), and one call each 
 (``--steps`` L-BFGS iterations; seconds per iteration, after a compiling call). The
 decay-rate front end runs twice, with the optical depth from the native kernel (the
 default where it is built) and from the pure-JAX path, and one scan's objective (value and
-gradient in the pose) is timed on both. Front-end
+gradient in the pose) is timed on both; it runs a third time without the grazing cut
+(``grazing_cells=0``; ``grazing_cost``: its scans/s over the default's). Front-end
 scans/s leave out the first two scans (the first match compiles; reported as
 ``first_scan_s``). The 1-minute load average is recorded before every timing. Writes
 ``benchmarks/results/slam.json``.
@@ -154,6 +155,10 @@ def main() -> None:
             row[f"front_end_{model}"]["backend"] = _native.resolve(cfg.backend)
             if model == "decay_rate":
                 start = fe.poses
+        # the grazing cut's cost: the decay-rate front end without it
+        rec, _ = time_front_end(ranges, az, odo, slam.FrontEndConfig(grazing_cells=0.0), rate)
+        rec["grazing_cost"] = rec["scans_per_s"] / row["front_end_decay_rate"]["scans_per_s"]
+        row["front_end_decay_rate_no_grazing"] = rec
         # the decay-rate front end on the pure-JAX optical depth (the fallback and
         # oracle of the native kernel, which "auto" picks on a CPU where it is built)
         rec, _ = time_front_end(ranges, az, odo, slam.FrontEndConfig(backend="jax"), rate)

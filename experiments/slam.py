@@ -253,8 +253,8 @@ def _run_log(cfg, name, seed, out, front, loops, back, multi):
         }
     if "endpoint" in want:
         # the endpoint model has no free-space term: its map keeps every ray's free
-        # length (grazing_cells only changes which cells count as mapped)
-        ep_front = dataclasses.replace(front, model="endpoint", grazing_cells=0.0)
+        # length whatever grazing_cells says (slam.grid_map)
+        ep_front = dataclasses.replace(front, model="endpoint")
         ep = slam.run_slam(
             ranges, az, odo, dataclasses.replace(scfg, front=ep_front), progress=True
         )

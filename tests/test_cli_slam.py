@@ -179,6 +179,29 @@ def test_slam_back_end_is_run_slams(office_log, tmp_path):
     assert np.abs(ref.poses - ref.pose_graph_poses).max() > 1e-6  # the back end moved them
 
 
+@pytest.mark.slow  # ~30 s: SLAM of 12 scans, twice
+def test_slam_grazing_cells(office_log, tmp_path):
+    """``--grazing-cells N`` is :class:`lidarjax.slam.FrontEndConfig`'s ``grazing_cells``
+    (0: off, which moves the front end; recorded in slam.json)."""
+    from lidarjax import slam
+
+    path = office_log[0]
+    log = load_carmen(path)
+    cap = log.usable_range_m
+    ranges, odo = np.minimum(log.ranges_m[:12], cap), log.odometry[:12]
+    fe = {}
+    for n in (0.0, 1.0):
+        out = tmp_path / f"g{n}"
+        args = ["slam", str(path), "-o", str(out), "--no-progress", "--scans", "0:12"]
+        assert main([*args, "--grazing-cells", str(n)]) == 0
+        assert json.loads((out / "slam.json").read_text())["grazing_cells"] == n
+        _, fe[n] = _poses_of_tum(out / "front_end.tum")
+        front = slam.FrontEndConfig(range_cap_m=cap, window_m=cap + 2.0, grazing_cells=n)
+        ref = slam.run_front_end(ranges, log.azimuths_rad, odo, front)
+        np.testing.assert_allclose(fe[n], ref.poses, atol=1e-9)
+    assert np.abs(fe[0.0] - fe[1.0]).max() > 1e-6
+
+
 @pytest.mark.slow  # ~60 s: SLAM a second time
 def test_slam_odometry_noise(office_log, office_slam, tmp_path):
     """--odometry-noise K widens the odometry model K times: with K = 4 the pose graph's
@@ -297,6 +320,8 @@ def test_slam_odometry_choice(office_log, capsys):
         (["--odometry-noise", "0"], "--odometry-noise", "positive"),
         (["--odometry-noise", "inf"], "--odometry-noise", "positive"),
         (["--rpe-delta", "0"], "--rpe-delta", "positive"),
+        (["--grazing-cells", "-1"], "--grazing-cells", ">= 0"),
+        (["--grazing-cells", "nan"], "--grazing-cells", ">= 0"),
         (["--drift", "-2"], "--drift", ">= 0"),
         (["--scans", "3:4"], "--scans", "at least 2"),
         (["--model", "icp"], "--model", "invalid choice"),

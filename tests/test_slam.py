@@ -515,9 +515,10 @@ def test_find_loops_closes_the_revisit(office_revisit_loops):
     assert len(loops.edges) > 0 and loops.n_tried >= len(loops.edges)
     assert np.all(j < i) and np.all(i - j >= LoopConfig().min_separation)
     revisit = (i >= 100) & (j < 35)
-    assert revisit.sum() >= 3  # measured: 6 of 13 accepted loops
+    assert revisit.sum() >= 3  # measured: 3 of 4 accepted loops
     xy, yaw = _loop_errors(truth, loops)
-    # measured on the revisit: 0.010-0.051 m, <= 0.006 rad
+    # measured on the revisit: 0.017-0.035 m, <= 0.006 rad (without the loop search's
+    # final_from_search, with the map's grazing cut, one was 0.056 m and 0.018 rad off)
     assert xy[revisit].max() < 0.07 and yaw[revisit].max() < 0.012
 
 
@@ -651,10 +652,12 @@ def test_find_loops_wide_search_closes_a_far_revisit(office_far_revisit):
         xy, yaw = _loop_errors(truth, loops)
         return revisit(loops) & (xy < 0.07) & (yaw < 0.012)
 
-    assert accurate(narrow).sum() == 0
+    # the local search closes at most one of the revisit's scans (measured: one, 25-120,
+    # 5 mm off, with the map's grazing cut; without it, the same loop 0.11 m off)
+    assert accurate(narrow).sum() <= 1
     # the wide search runs only where the local match is rejected: it adds loops
     assert {tuple(e) for e in narrow.edges} <= {tuple(e) for e in wide.edges}
-    assert accurate(wide).sum() >= 3
+    assert accurate(wide).sum() >= accurate(narrow).sum() + 3  # measured: 4 against 1
     # every loop it adds is accurate (the drift bound rejects the office's aliased rooms)
     added = np.array([e not in narrow.edges.tolist() for e in wide.edges.tolist()])
     xy, yaw = _loop_errors(truth, wide)
@@ -971,6 +974,7 @@ def test_back_ends_reject_bad_inputs(change, name, optimize):
         ({"min_mean_log_likelihood": float("-inf")}, "min_mean_log_likelihood"),
         ({"min_mean_log_likelihood": True}, "min_mean_log_likelihood"),
         ({"min_mean_log_likelihood": "0.5"}, "min_mean_log_likelihood"),
+        ({"final_from_search": 0}, "final_from_search"),
     ],
 )
 def test_loop_config_rejects_bad_values(kwargs, name):

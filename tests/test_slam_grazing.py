@@ -112,9 +112,25 @@ def test_match_scan_with_grazing_recovers_a_perturbed_pose():
         assert abs(np.angle(np.exp(1j * (m.pose[2] - truth[k, 2])))) < 0.006
 
 
+def test_grazing_is_on_by_default_and_the_endpoint_model_ignores_it():
+    # the endpoint model has no free-space term: its map keeps every ray's free length
+    # and its matches get no grazing gap, whatever grazing_cells says
+    from lidarjax.slam._front_end import _grazing
+
+    assert FrontEndConfig().grazing_cells == 1.0
+    assert grid_map(FrontEndConfig()).grazing_m == pytest.approx(0.05)
+    ep = FrontEndConfig(model="endpoint", grazing_cells=2.0)
+    assert grid_map(ep).grazing_m == 0.0
+    phi, r = _wall_scan(np.linspace(3, 30, 28))
+    assert np.all(_grazing(phi, r, FrontEndConfig(grazing_cells=2.0)) > 0)
+    np.testing.assert_array_equal(_grazing(phi, r, ep), 0.0)
+
+
 @pytest.mark.parametrize(
     ("kwargs", "name"),
     [
+        ({"final_from_search": 1}, "final_from_search"),
+        ({"mask_unmapped": "yes"}, "mask_unmapped"),
         ({"grazing_cells": -1.0}, "grazing_cells"),
         ({"grazing_cells": float("nan")}, "grazing_cells"),
         ({"grazing_max_m": 0.0}, "grazing_max_m"),

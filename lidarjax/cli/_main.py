@@ -313,6 +313,14 @@ def build_parser() -> argparse.ArgumentParser:
         "rad + 0.03 rad/m + 5 %% of the turn, times K); raise it for a noisier odometry",
     )
     p.add_argument(
+        "--grazing-cells",
+        type=float,
+        default=1.0,
+        metavar="N",
+        help="where a ray grazes a wall, its stretch within N cells of the wall is left "
+        "out of the free space (the map's and the match's; 0: off; decay-rate model only)",
+    )
+    p.add_argument(
         "--drift",
         type=int,
         metavar="SEED",

@@ -163,6 +163,9 @@ def cmd_slam(args) -> int:
         raise CliInputError("--loop-rounds", f"must be >= 1, got {args.loop_rounds}")
     resolution = _positive(args.resolution, "--resolution")
     noise = _positive(args.odometry_noise, "--odometry-noise")
+    grazing = float(args.grazing_cells)
+    if not (math.isfinite(grazing) and grazing >= 0):
+        raise CliInputError("--grazing-cells", f"must be a number >= 0, got {grazing}")
     rpe_delta = _positive(args.rpe_delta, "--rpe-delta")
     loaded, idx = load_log_scans(args)
     log = loaded.log
@@ -190,6 +193,8 @@ def cmd_slam(args) -> int:
         range_cap_m=cap,
         window_m=cap + 2.0,
         resolution_m=resolution,
+        grazing_cells=grazing,
+        grazing_max_m=max(base.grazing_max_m, grazing * resolution),
         **{k: noise * getattr(base, k) for k in ODOMETRY_SIGMAS},
     )
     cfg = slam.SlamConfig(
@@ -256,6 +261,7 @@ def cmd_slam(args) -> int:
         "back_end": args.back_end,
         "loop_rounds": int(args.loop_rounds),
         "odometry_noise": noise,
+        "grazing_cells": grazing,
         "range_cap_m": cap,
         "resolution_m": resolution,
         "azimuth_layout": loaded.azimuth_layout,

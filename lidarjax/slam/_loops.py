@@ -112,6 +112,9 @@ class LoopConfig:
             scan ``i``'s candidates there were all more than ``submap_half`` scans from
             ``j`` (the same start on nearly the same submap gives the same match; the
             nearest candidate may switch between neighbouring scans of one visit).
+        final_from_search: the matches run the last stage also alone from the search's
+            best pose (:class:`~lidarjax.slam.FrontEndConfig`'s ``final_from_search``),
+            whatever the front end's setting.
     """
 
     radius_m: float = 4.0
@@ -138,6 +141,7 @@ class LoopConfig:
     wide_drift_per_m: float = 0.06
     retry_xy_m: float = 0.1
     retry_yaw_rad: float = 0.02
+    final_from_search: bool = True
 
     def __post_init__(self):
         for name in ("radius_m", "max_correction_m", "agree_m"):
@@ -156,6 +160,10 @@ class LoopConfig:
             raise ValueError(f"submap_half must be an int >= 0, got {self.submap_half!r}")
         if self.min_separation <= 2 * self.submap_half:
             raise ValueError("min_separation must exceed 2 * submap_half")
+        if not isinstance(self.final_from_search, bool):
+            raise ValueError(
+                f"final_from_search must be True or False, got {self.final_from_search!r}"
+            )
         for name in (
             "start_offsets_m",
             "start_offsets_rad",
@@ -422,6 +430,7 @@ def find_loops(
         search_xy_m=cfg.search_xy_m,
         search_yaw_rad=cfg.search_yaw_rad,
         search_exclude_m=cfg.exclude_m,
+        final_from_search=cfg.final_from_search,
     )
     rng = np.asarray(ranges_m, float)
     az = np.asarray(azimuths_rad, float)

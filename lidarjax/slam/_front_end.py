@@ -163,7 +163,10 @@ class FrontEndConfig:
             simulated office's revisit with ``grazing_cells=1`` one loop came out
             0.056 m and 0.018 rad off (mean log-likelihood 2.76 nats per ray), 0.035 m
             and 0.005 rad (3.82) with the third candidate. It costs one more
-            refinement of the last stage per match.
+            refinement of the last stage per match. Off by default: in the front end
+            it moved orebro's pose graph (drift seeds 0-5) from a mean of 0.276 to
+            0.348 m (stop 54); the loop search turns it on
+            (:class:`~lidarjax.slam.LoopConfig`).
         backend: which code computes the rays' optical depth with its derivatives (the
             match's information included) and the blurs of the map window: ``"auto"``
             (the default: the native C++ kernels on a CPU where they are built, else the
@@ -290,7 +293,8 @@ class FrontEndConfig:
         if g < self.grazing_cells * self.resolution_m:
             raise ValueError(
                 f"grazing_max_m ({g}) must be >= grazing_cells * resolution_m "
-                f"({self.grazing_cells * self.resolution_m})"
+                f"({self.grazing_cells * self.resolution_m}): raise grazing_max_m or "
+                "lower grazing_cells (0 turns the grazing cut off)"
             )
         from ..raytrace import _native
 

@@ -338,6 +338,12 @@ class FrontEndConfig:
         """Cells per side of the matching window."""
         return int(math.ceil(2 * self.window_m / self.resolution_m))
 
+    @property
+    def grazing_m(self) -> float:
+        """Width of the grazing cut (m): ``grazing_cells * resolution_m``, 0 for the
+        endpoint model (no free-space term)."""
+        return 0.0 if self.model == "endpoint" else self.grazing_cells * self.resolution_m
+
 
 def grazing_lengths(
     azimuths: np.ndarray,
@@ -398,13 +404,13 @@ def grazing_lengths(
 def _grazing(azimuths, ranges, cfg: FrontEndConfig) -> np.ndarray:
     """``[b]`` :func:`grazing_lengths` of one scan under ``cfg`` (zeros when off, or
     for the endpoint model)."""
-    if cfg.grazing_cells <= 0 or cfg.model == "endpoint":
+    if cfg.grazing_m <= 0:
         return np.zeros(np.shape(ranges))
     return grazing_lengths(
         np.asarray(azimuths, float),
         np.asarray(ranges, float),
         cfg.range_cap_m,
-        cfg.grazing_cells * cfg.resolution_m,
+        cfg.grazing_m,
         cfg.grazing_max_m,
     )
 
@@ -412,12 +418,8 @@ def _grazing(azimuths, ranges, cfg: FrontEndConfig) -> np.ndarray:
 def grid_map(cfg: FrontEndConfig) -> GridMap:
     """An empty :class:`GridMap` with the resolution, range cap and grazing settings of
     ``cfg`` (no grazing cut for the endpoint model)."""
-    graze = 0.0 if cfg.model == "endpoint" else cfg.grazing_cells * cfg.resolution_m
     return GridMap(
-        cfg.resolution_m,
-        cfg.range_cap_m,
-        grazing_m=graze,
-        grazing_max_m=cfg.grazing_max_m,
+        cfg.resolution_m, cfg.range_cap_m, grazing_m=cfg.grazing_m, grazing_max_m=cfg.grazing_max_m
     )
 
 
@@ -697,18 +699,16 @@ def _match_impl(rates, seen, origin, az, rng, graze, pose0, pred, sigmas, cfg: F
         # corridor or snapped onto an aliased structure
         return jnp.sum(whitened(p) ** 2) <= gate**2
 
-    f_staged = jnp.where(plausible(pose), final(pose), -jnp.inf)
-    f_direct = jnp.where(plausible(direct), final(direct), -jnp.inf)
-    pick = jnp.where(f_direct > f_staged, direct.parameters(), pose.parameters())
-    f_pick = jnp.maximum(f_staged, f_direct)
+    candidates = [pose, direct]
     if (n_xy > 0 or n_yaw > 0) and cfg.final_from_search:
         # a third candidate: the last stage alone from the search's best (the blurred
         # stages can carry a good start into a neighbouring basin)
-        fs, _ = refine_pose(final, start, max_steps=cfg.max_steps)
-        f_fs = jnp.where(plausible(fs), final(fs), -jnp.inf)
-        pick = jnp.where(f_fs > f_pick, fs.parameters(), pick)
-        f_pick = jnp.maximum(f_pick, f_fs)
-    ok = jnp.isfinite(f_pick)
+        candidates.append(refine_pose(final, start, max_steps=cfg.max_steps)[0])
+    # the first of the best plausible ones (an implausible candidate scores -inf)
+    scores = jnp.stack([jnp.where(plausible(c), final(c), -jnp.inf) for c in candidates])
+    best = jnp.argmax(scores)
+    pick = jnp.stack([c.parameters() for c in candidates])[best]
+    ok = jnp.isfinite(scores[best])
 
     def stiff_fallback():
         # neither is plausible: the last stage from the prediction under a prior

@@ -1227,6 +1227,14 @@ class SlamBackEnd:
 
 
 @dataclass
+class SlamResimulate:
+    enabled: bool = _f()
+    cell_m: float = _f(positive)
+    link_m: float = _f(positive)
+    noise_sigma_m: float = _f(nonnegative)
+
+
+@dataclass
 class SlamExperimentConfig:
     """``configs/slam.yaml``."""
 
@@ -1240,6 +1248,7 @@ class SlamExperimentConfig:
     loops: SlamLoops = _node(SlamLoops)
     pose_graph: SlamPoseGraph = _node(SlamPoseGraph)
     back_end: SlamBackEnd = _node(SlamBackEnd)
+    resimulate: SlamResimulate = _node(SlamResimulate)
     variants: list[str] = _f(nonempty, unique)
     rpe_delta_m: float = _f(positive)
     map_resolution_m: float = _f(positive)

@@ -78,7 +78,7 @@ from lidarjax.metrics import (  # noqa: E402
 )
 from lidarjax.rays import from_scan  # noqa: E402
 from lidarjax.raytrace import GridSpec, accumulate  # noqa: E402
-from lidarjax.sim import wheel_odometry  # noqa: E402
+from lidarjax.sim import resimulate_scans, wheel_odometry  # noqa: E402
 
 
 def _grid(poses, ranges, az, spec, cap):
@@ -178,6 +178,32 @@ def _run_log(cfg, name, seed, out, front, loops, back, multi):
     gt = log.poses[:n]
     ranges = np.minimum(log.ranges_m[:n], log.max_range_m)
     az = log.azimuths_rad
+    usable = log.usable_range_m
+    resim = None
+    if cfg.resimulate.enabled:
+        # the log's own surfaces at the corrected poses, cast again from them: the
+        # corrected poses become exact, so their own errors leave the scores
+        r = cfg.resimulate
+        rs = resimulate_scans(
+            ranges,
+            az,
+            gt,
+            max_range_m=cfg.front_end.range_cap_m,
+            cell_m=r.cell_m,
+            link_m=r.link_m,
+            noise_sigma_m=r.noise_sigma_m,
+            seed=seed,
+        )
+        cut = (ranges < cfg.front_end.range_cap_m) & (rs.ranges_m < ranges - 0.3)
+        resim = {
+            "cell_m": r.cell_m,
+            "link_m": r.link_m,
+            "noise_sigma_m": r.noise_sigma_m,
+            "n_segments": rs.n_segments,
+            "share_returns": float((rs.ranges_m < cfg.front_end.range_cap_m).mean()),
+            "share_cut_short_0p3m": float(cut.mean()),
+        }
+        ranges, usable = rs.ranges_m, cfg.front_end.range_cap_m
     odo = wheel_odometry(
         gt,
         seed=seed,
@@ -267,7 +293,7 @@ def _run_log(cfg, name, seed, out, front, loops, back, multi):
         }
     if "icp_gtsam" in want:
         t = time.perf_counter()
-        ic = slam.icp_pose_graph_slam(ranges, az, odo, max_range_m=log.usable_range_m)
+        ic = slam.icp_pose_graph_slam(ranges, az, odo, max_range_m=usable)
         est["icp_gtsam"] = ic.poses
         info["icp_gtsam"] = {"n_loops": int(len(ic.loops)), "seconds": time.perf_counter() - t}
     per = {}
@@ -282,6 +308,7 @@ def _run_log(cfg, name, seed, out, front, loops, back, multi):
     result = {
         "n_scans": n,
         "azimuth_layout": cfg.azimuth_layout,
+        "resimulated": resim,
         "scan_rate_hz": rate,
         "variants": per,
         "reference_consistency": _consistency(gt, ranges, az, back, cfg.loops.min_separation),

@@ -202,6 +202,50 @@ def test_slam_grazing_cells(office_log, tmp_path):
     assert np.abs(fe[0.0] - fe[1.0]).max() > 1e-6
 
 
+@pytest.mark.slow  # ~20 s: SLAM of 12 scans
+def test_slam_resimulate(office_log, tmp_path):
+    """``--resimulate SEED`` runs SLAM on :func:`lidarjax.sim.resimulate_scans` of the
+    log's scans at its ground-truth poses (the front end equals run_front_end on them),
+    builds the map from them and records it in slam.json."""
+    from lidarjax import slam
+    from lidarjax.sim import resimulate_scans
+
+    path = office_log[0]
+    log = load_carmen(path)
+    cap = log.usable_range_m
+    ranges, odo = np.minimum(log.ranges_m[:12], cap), log.odometry[:12]
+    out = tmp_path / "r"
+    args = ["slam", str(path), "-o", str(out), "--no-progress", "--scans", "0:12"]
+    assert main([*args, "--resimulate", "3"]) == 0
+    meta = json.loads((out / "slam.json").read_text())["resimulated"]
+    assert meta["seed"] == 3 and meta["cell_m"] == 0.01 and meta["share_returns"] > 0.9
+    rs = resimulate_scans(ranges, log.azimuths_rad, log.poses[:12], max_range_m=cap, seed=3)
+    assert np.abs(rs.ranges_m - ranges).max() > 0.02  # fresh noise: other scans
+    front = slam.FrontEndConfig(range_cap_m=cap, window_m=cap + 2.0)
+    ref = slam.run_front_end(rs.ranges_m, log.azimuths_rad, odo, front)
+    _, fe = _poses_of_tum(out / "front_end.tum")
+    np.testing.assert_allclose(fe, ref.poses, atol=1e-9)
+    # the map is of the re-simulated scans: its hits equal an accumulation of them
+    _, est = _poses_of_tum(out / "trajectory.tum")
+    _, _, stats, m = load_map(str(out / "map.npz"))
+    rays = from_scan(jaxlie.SE2.from_xy_theta(est[:, 0], est[:, 1], est[:, 2]),
+                     log.azimuths_rad, rs.ranges_m, m["r_min_m"], m["r_max_m"])  # fmt: skip
+    np.testing.assert_array_equal(
+        np.asarray(stats.hits), np.asarray(accumulate(stats.spec, rays).hits)
+    )
+
+
+def test_slam_resimulate_needs_ground_truth(office_log):
+    from lidarjax.cli._inputs import LoadedLog
+    from lidarjax.cli._slam import _check_resimulate
+
+    log = load_carmen(office_log[0])
+    blind = LoadedLog(log, str(office_log[0]), "bag", False)
+    with pytest.raises(Exception, match="no ground-truth poses"):
+        _check_resimulate(types.SimpleNamespace(resimulate=0), blind)
+    _check_resimulate(types.SimpleNamespace(resimulate=None), blind)  # not asked: fine
+
+
 @pytest.mark.slow  # ~60 s: SLAM a second time
 def test_slam_odometry_noise(office_log, office_slam, tmp_path):
     """--odometry-noise K widens the odometry model K times: with K = 4 the pose graph's
@@ -323,6 +367,7 @@ def test_slam_odometry_choice(office_log, capsys):
         (["--grazing-cells", "-1"], "--grazing-cells", ">= 0"),
         (["--grazing-cells", "nan"], "--grazing-cells", ">= 0"),
         (["--drift", "-2"], "--drift", ">= 0"),
+        (["--resimulate", "-1"], "--resimulate", ">= 0"),
         (["--scans", "3:4"], "--scans", "at least 2"),
         (["--model", "icp"], "--model", "invalid choice"),
         (["--back-end", "gtsam"], "--back-end", "invalid choice"),

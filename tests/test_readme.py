@@ -154,6 +154,12 @@ def test_standalone_guide_pages_run(name, tmp_path, monkeypatch):
     elif name == "slam.md":  # the front end beats the odometry; the back end's objective rises
         assert (ns["out"] / "joint_poses.txt").is_file()
         assert ns["joint"].objective[-1] >= ns["joint"].objective[0]
+        # SLAM on re-simulated scans, scored against the exact poses, beats the odometry
+        from lidarjax.metrics import absolute_trajectory_error as ate
+
+        t = ns["intel_truth"]
+        assert ns["exact"].ranges_m.shape == (150, 180)
+        assert ate(ns["on_exact"].poses, t).rmse_m < ate(ns["intel_odometry"], t).rmse_m / 2
         # the square with a correlated loop closure: its cost is 0.5 |W r|^2 on the odometry
         # edges and the Cauchy loss on the loop (NumPy, here), lower than at the start,
         # and the answer is not the diagonal one

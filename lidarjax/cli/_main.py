@@ -328,6 +328,14 @@ def build_parser() -> argparse.ArgumentParser:
         "ground-truth poses instead of LOG's odometry",
     )
     p.add_argument(
+        "--resimulate",
+        type=int,
+        metavar="SEED",
+        help="replace LOG's scans by lidarjax.sim.resimulate_scans of them: LOG's own "
+        "surfaces at its ground-truth poses, cast again from those poses (1 cm cells, 1 cm "
+        "noise of seed SEED), so the errors are against exact poses",
+    )
+    p.add_argument(
         "--rpe-delta",
         type=float,
         default=1.0,

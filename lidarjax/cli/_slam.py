@@ -92,6 +92,37 @@ def _odometry(args, loaded, idx) -> tuple[np.ndarray, str]:
     return odo, "the log's"
 
 
+def _check_resimulate(args, loaded) -> None:
+    if args.resimulate is None:
+        return
+    if args.resimulate < 0:
+        raise CliInputError("--resimulate", f"must be a seed >= 0, got {args.resimulate}")
+    if not loaded.has_ground_truth:
+        raise CliInputError("--resimulate", "LOG has no ground-truth poses to cast from")
+
+
+def _resimulated(args, loaded, idx, ranges, az, cap, usable):
+    """``--resimulate SEED``: LOG's scans re-simulated at its ground-truth poses
+    (:func:`lidarjax.sim.resimulate_scans`, cast to the range cap; no-returns read the
+    usable range, LOG's own no-return convention), and the settings for slam.json; or
+    ``(ranges, None)`` without the option."""
+    if args.resimulate is None:
+        return ranges, None
+    _check_resimulate(args, loaded)
+    from ..sim import resimulate_scans
+
+    gt = np.asarray(loaded.log.poses, float)[idx]
+    rs = resimulate_scans(ranges, az, gt, max_range_m=cap, seed=int(args.resimulate))
+    out = np.where(rs.ranges_m >= cap, usable, rs.ranges_m)
+    info = {
+        "seed": int(args.resimulate),
+        "cell_m": rs.cell_m,
+        "n_segments": rs.n_segments,
+        "share_returns": float(np.mean(out < cap)),
+    }
+    return out, info
+
+
 def _write_loops(path, idx, loops, revisits) -> None:
     """``loops.csv``: one relative-pose factor per row, scan indices of LOG."""
     rows = ["kind,scan_from,scan_to,dx_m,dy_m,dyaw_rad"]
@@ -171,6 +202,7 @@ def cmd_slam(args) -> int:
     log = loaded.log
     if idx.size < 2:
         raise CliInputError("--scans", "select at least 2 scans")
+    _check_resimulate(args, loaded)
     usable = float(log.usable_range_m)
     cap = _range_cap(args.range_cap, usable)
     side = 2.0 * (cap + 2.0) / resolution  # the front end's map window, in cells
@@ -187,6 +219,12 @@ def cmd_slam(args) -> int:
     # non-finite readings (a bag's inf) and readings at or beyond the usable range are
     # no-returns: clipped to the usable range, at or beyond the cap
     ranges = np.minimum(scan_ranges(log, usable)[idx], usable)
+    ranges, resim = _resimulated(args, loaded, idx, ranges, az, cap, usable)
+    if resim is not None:  # the map below is built from the same scans
+        all_ranges = np.array(log.ranges_m, float)
+        all_ranges[idx] = ranges
+        loaded = dataclasses.replace(loaded, log=dataclasses.replace(log, ranges_m=all_ranges))
+        log = loaded.log
     base = slam.FrontEndConfig()
     front = slam.FrontEndConfig(
         model=args.model.replace("-", "_"),
@@ -266,6 +304,7 @@ def cmd_slam(args) -> int:
         "resolution_m": resolution,
         "azimuth_layout": loaded.azimuth_layout,
         "odometry": odo_source,
+        "resimulated": resim,
         "n_loops": int(len(res.loops.edges)),
         "n_revisits": int(len(res.revisits.edges)),
         # scans whose match failed the gate: placed near the odometry's prediction

@@ -22,6 +22,10 @@ core's primitives (:mod:`lidarjax.raytrace`) where one exists:
   kernel (:func:`simulate_urban_scan`, :func:`simulate_urban_scans`, with
   :func:`~lidarjax.raytrace.ray_cylinder`, :func:`~lidarjax.raytrace.ray_box` and
   :func:`~lidarjax.raytrace.ray_sphere`) and drifting odometry (:func:`wheel_odometry`).
+- re-simulated logs (:mod:`._resimulate`): :func:`resimulate_scans` builds a world from a
+  log's own surfaces at given poses (segments between neighbouring end points, on a fine
+  grid) and casts the log's beams again from those poses, so the poses are exact
+  (:class:`ResimulatedScans`).
 
 Layering: ``sim`` imports :mod:`lidarjax.datasets` and :mod:`lidarjax.raytrace`, never the
 other way round (``lidarjax.datasets`` still forwards the old names here, lazily and with a
@@ -37,6 +41,8 @@ from ._office import make_office as make_office
 from ._office import simulate_scans as simulate_scans
 from ._polygons import random_polygon as random_polygon
 from ._polygons import simulate_polygon_scan as simulate_polygon_scan
+from ._resimulate import ResimulatedScans as ResimulatedScans
+from ._resimulate import resimulate_scans as resimulate_scans
 from ._synpeb import make_synpeb_scene as make_synpeb_scene
 from ._synpeb import simulate_synpeb_scan as simulate_synpeb_scan
 from ._synpeb import synpeb_scan as synpeb_scan

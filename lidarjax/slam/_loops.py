@@ -263,28 +263,29 @@ def _wide_search(
     h, r, origin = grid.window(guess[:2], n)
     seen = r > 1e-9
     rates = np.where(seen, h / np.where(seen, r, 1.0), 0.0)
-    dt = jnp.result_type(float)
-    lam = jnp.asarray(rates, dt)
-    sb = fcfg.search_blur_m / res
-    if sb > 0:
-        lam = blur(lam, sb)
-    pooled = lam.reshape(n // f, f, n // f, f).max(axis=(1, 3))
-    table = jnp.maximum(jnp.log(pooled + fcfg.rate_floor), fcfg.ray_floor)
-    best, s_best, s_runner = correlative_search(
-        table,
-        jnp.asarray(origin, dt),
-        cell,
-        jnp.asarray(az, dt),
-        jnp.asarray(rng, dt),
-        jnp.asarray(rng < fcfg.range_cap_m, dt),
-        jnp.asarray(guess, dt),
-        jnp.asarray(guess, dt),
-        jnp.zeros(3, dt),
-        n_xy=n_xy,
-        n_yaw=n_yaw,
-        step_yaw=cfg.wide_step_yaw_rad,
-        exclude_m=cfg.wide_exclude_m,
-    )
+    context, dt = fcfg.precision()
+    with context:
+        lam = jnp.asarray(rates, dt)
+        sb = fcfg.search_blur_m / res
+        if sb > 0:
+            lam = blur(lam, sb)
+        pooled = lam.reshape(n // f, f, n // f, f).max(axis=(1, 3))
+        table = jnp.maximum(jnp.log(pooled + fcfg.rate_floor), fcfg.ray_floor)
+        best, s_best, s_runner = correlative_search(
+            table,
+            jnp.asarray(origin, dt),
+            cell,
+            jnp.asarray(az, dt),
+            jnp.asarray(rng, dt),
+            jnp.asarray(rng < fcfg.range_cap_m, dt),
+            jnp.asarray(guess, dt),
+            jnp.asarray(guess, dt),
+            jnp.zeros(3, dt),
+            n_xy=n_xy,
+            n_yaw=n_yaw,
+            step_yaw=cfg.wide_step_yaw_rad,
+            exclude_m=cfg.wide_exclude_m,
+        )
     return np.asarray(best, float), float(s_best - s_runner)
 
 

@@ -16,8 +16,7 @@ odometry and the revisits; best of 3 after a compiling call), and one call each 
 decay-rate front end runs twice, with the optical depth from the native kernel (the
 default where it is built) and from the pure-JAX path, and one scan's objective (value and
 gradient in the pose) is timed on both; it runs a third time without the grazing cut
-(``grazing_cells=0``; ``grazing_cost``: its scans/s over the default's) and a fourth in
-float32 (``dtype="float32"``; ``float64_cost``: its scans/s over the default's). Front-end
+(``grazing_cells=0``; ``grazing_cost``: its scans/s over the default's). Front-end
 scans/s leave out the first two scans (the first match compiles; reported as
 ``first_scan_s``). The 1-minute load average is recorded before every timing. Writes
 ``benchmarks/results/slam.json``.
@@ -90,15 +89,8 @@ def time_front_end(ranges, az, odo, cfg, rate):
 def time_scan_objective(ranges, az, poses, k: int = 30, reps: int = 200):
     """Milliseconds per value-and-gradient of one scan's decay-rate log-likelihood in its
     pose (the front end's BFGS objective: the last stage, scan ``k`` on the map of the
-    scans before it, in the front end's dtype, float64), native kernel and JAX path in the same
+    scans before it, float32 as the front end), native kernel and JAX path in the same
     run, each the best of 3 blocks of ``reps`` calls after a compiling call."""
-    cfg = slam.FrontEndConfig()
-    context, dt = cfg.precision()
-    with context:
-        return _time_scan_objective(cfg, dt, ranges, az, poses, k, reps)
-
-
-def _time_scan_objective(cfg, dt, ranges, az, poses, k, reps):
     import jax
     import jax.numpy as jnp
 
@@ -106,18 +98,19 @@ def _time_scan_objective(cfg, dt, ranges, az, poses, k, reps):
     from lidarjax.raytrace import GridSpec
     from lidarjax.slam._front_end import GridMap, _scan_log_likelihoods, se2
 
+    cfg = slam.FrontEndConfig()
     grid = GridMap(cfg.resolution_m, cfg.range_cap_m)
     for j in range(k):
         grid.add_scan(poses[j], az, ranges[j])
     h, r, origin = grid.window(poses[k][:2], cfg.window_cells)
-    rates = np.where(r > 1e-9, h / np.maximum(r, 1e-9), 0.0).astype(dt)
+    rates = np.where(r > 1e-9, h / np.maximum(r, 1e-9), 0.0).astype(np.float32)
     n = rates.shape[0]
-    spec = GridSpec(jnp.asarray(origin, dt), cfg.resolution_m, (n, n))
-    grid_map = DecayRateMap(spec, jnp.asarray(rates), dt(0.0))
-    azj = jnp.asarray(az, dt)
-    rj = jnp.asarray(np.minimum(ranges[k], cfg.range_cap_m), dt)
+    spec = GridSpec(jnp.asarray(origin, jnp.float32), cfg.resolution_m, (n, n))
+    grid_map = DecayRateMap(spec, jnp.asarray(rates), jnp.float32(0.0))
+    azj = jnp.asarray(az, jnp.float32)
+    rj = jnp.asarray(np.minimum(ranges[k], cfg.range_cap_m), jnp.float32)
     gap = cfg.gap_cells * cfg.resolution_m
-    p0 = jnp.asarray(poses[k], dt)
+    p0 = jnp.asarray(poses[k], jnp.float32)
     out = {"rays": int(az.shape[0]), "nodes_per_ray": cfg.n_nodes, "cells": int(n * n)}
     for backend in ("native", "jax"):
         if backend == "native" and not _native.available():
@@ -166,10 +159,6 @@ def main() -> None:
         rec, _ = time_front_end(ranges, az, odo, slam.FrontEndConfig(grazing_cells=0.0), rate)
         rec["grazing_cost"] = rec["scans_per_s"] / row["front_end_decay_rate"]["scans_per_s"]
         row["front_end_decay_rate_no_grazing"] = rec
-        # float32 matches (FrontEndConfig.dtype; float64 is the default)
-        rec, _ = time_front_end(ranges, az, odo, slam.FrontEndConfig(dtype="float32"), rate)
-        rec["float64_cost"] = rec["scans_per_s"] / row["front_end_decay_rate"]["scans_per_s"]
-        row["front_end_decay_rate_float32"] = rec
         # the decay-rate front end on the pure-JAX optical depth (the fallback and
         # oracle of the native kernel, which "auto" picks on a CPU where it is built)
         rec, _ = time_front_end(ranges, az, odo, slam.FrontEndConfig(backend="jax"), rate)

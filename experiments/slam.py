@@ -327,6 +327,7 @@ def main(cfg: DictConfig) -> None:
         blur_schedule_m=tuple(cfg.front_end.blur_schedule_m),
         backend=cfg.front_end.backend,
         grazing_cells=cfg.front_end.grazing_cells,
+        dtype=cfg.front_end.dtype,
     )
     loops = slam.LoopConfig(
         radius_m=cfg.loops.radius_m,

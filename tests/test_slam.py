@@ -279,23 +279,28 @@ def test_front_end_on_the_office(office_short):
 
 
 def test_match_runs_in_its_configured_dtype_whatever_jax_default(office_short):
-    """FrontEndConfig.dtype: a float64 match (the default) is the same with JAX's default
-    float32 as with x64 on; a float32 match is another computation (round-off apart)."""
+    """FrontEndConfig.dtype: None (the default) follows JAX's default; "float64" is the
+    same computation with JAX's default float32 as with x64 on; "float32" is another
+    computation (round-off apart), and None under float32 is that one."""
     import jax
 
     truth, ranges, _ = office_short
     cfg = FrontEndConfig()
-    assert cfg.dtype == "float64"
+    assert cfg.dtype is None
+    f64 = dataclasses.replace(cfg, dtype="float64")
+    f32 = dataclasses.replace(cfg, dtype="float32")
     grid = grid_map(cfg)
     for j in range(6):
         grid.add_scan(truth[j], AZ, ranges[j])
     start = truth[6] + np.array([0.08, -0.05, 0.02])
     ref = match_scan(grid, AZ, ranges[6], start, cfg)  # x64 on (tests/conftest.py)
     with jax.enable_x64(False):
-        m64 = match_scan(grid, AZ, ranges[6], start, cfg)
-        m32 = match_scan(grid, AZ, ranges[6], start, dataclasses.replace(cfg, dtype="float32"))
+        m64 = match_scan(grid, AZ, ranges[6], start, f64)
+        m32 = match_scan(grid, AZ, ranges[6], start, f32)
+        default32 = match_scan(grid, AZ, ranges[6], start, cfg)
     np.testing.assert_array_equal(m64.pose, ref.pose)
     np.testing.assert_array_equal(m64.information, ref.information)
+    np.testing.assert_array_equal(default32.pose, m32.pose)
     assert np.abs(m32.pose - ref.pose).max() > 0  # float32: round-off differs ...
     np.testing.assert_allclose(m32.pose[:2], ref.pose[:2], atol=5e-3)  # ... same basin
     # a real match: measured 0.034 m off the truth (its prior is centred on the start, 0.09 m off)

@@ -24,6 +24,7 @@ well posed.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import time
@@ -178,11 +179,16 @@ class FrontEndConfig:
             to 2.4 cm). On the shared logs the native front end runs 5.7-6.4 times
             faster (0.09-0.10 s per scan).
         dtype: floating-point type of each match (search, refinement, information):
-            ``"float64"`` (default) or ``"float32"``, whatever JAX's default is (the
-            match runs under ``jax.enable_x64``). In float32 the BFGS refinement of the
-            unblurred stage can stop far from the optimum it reaches in float64: on
-            intel re-simulated at its corrected poses (drift seed 0), 15 of the front
-            end's increments failed in float32 against 5 in float64 (stop 55).
+            ``None`` (default: JAX's default, float32 unless x64 is on, as every result
+            in docs/results/slam.md was measured), or ``"float32"`` / ``"float64"``
+            whatever JAX's default (the match runs under ``jax.enable_x64``). The BFGS
+            refinement of the unblurred stage stops earlier in float32. Measured in stop
+            55 (drift seed 0 unless said): on intel re-simulated at its corrected poses
+            (exact poses, a consistent world) float64 cut the front end's failed
+            increments from 15 to 5 (ATE 0.172 -> 0.122 m); on the real logs it made the
+            pose graph worse: orebro's six seeds 0.276 -> 0.452 m mean (5 of 6 worse),
+            intel 0.081 -> 0.087 m. Where the likelihood's best pose is not the true one
+            (the real data's), stopping near the start helps.
         ambiguous_margin, ambiguous_gate_sigmas: where the search's best score beats its
             runner-up (the best lattice pose farther than ``search_exclude_m``) by less
             than ``ambiguous_margin`` nats, the scene is ambiguous (a corridor seen
@@ -247,7 +253,7 @@ class FrontEndConfig:
     grazing_cells: float = 1.0
     grazing_max_m: float = 1.0
     final_from_search: bool = False
-    dtype: str = "float64"
+    dtype: str | None = None
 
     def __post_init__(self):
         for name in (
@@ -306,8 +312,8 @@ class FrontEndConfig:
         from ..raytrace import _native
 
         _native.check_backend(self.backend)
-        if self.dtype not in ("float32", "float64"):
-            raise ValueError(f"dtype must be 'float32' or 'float64', got {self.dtype!r}")
+        if self.dtype not in (None, "float32", "float64"):
+            raise ValueError(f"dtype must be None, 'float32' or 'float64', got {self.dtype!r}")
         if self.model not in MATCHING_MODELS:
             raise ValueError(f"model must be one of {MATCHING_MODELS}, got {self.model!r}")
         for name in ("n_nodes", "max_steps"):
@@ -348,8 +354,10 @@ class FrontEndConfig:
         return int(math.ceil(2 * self.window_m / self.resolution_m))
 
     def precision(self):
-        """``(context, dtype)``: the ``jax.enable_x64`` context a match runs under and its
-        JAX dtype (:attr:`dtype`)."""
+        """``(context, dtype)``: the context a match runs under (``jax.enable_x64`` where
+        :attr:`dtype` is set, else a no-op) and its JAX dtype."""
+        if self.dtype is None:
+            return contextlib.nullcontext(), jnp.result_type(float)
         wide = self.dtype == "float64"
         return jax.enable_x64(wide), (jnp.float64 if wide else jnp.float32)
 

@@ -1233,6 +1233,7 @@ class SlamResimulate:
     cell_m: float = _f(positive)
     link_m: float = _f(positive)
     noise_sigma_m: float = _f(nonnegative)
+    footprint_m: float = _f(nonnegative)
 
 
 @dataclass

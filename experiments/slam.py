@@ -192,6 +192,7 @@ def _run_log(cfg, name, seed, out, front, loops, back, multi):
             cell_m=r.cell_m,
             link_m=r.link_m,
             noise_sigma_m=r.noise_sigma_m,
+            footprint_m=r.footprint_m,
             seed=seed,
         )
         cut = (ranges < cfg.front_end.range_cap_m) & (rs.ranges_m < ranges - 0.3)
@@ -199,7 +200,9 @@ def _run_log(cfg, name, seed, out, front, loops, back, multi):
             "cell_m": r.cell_m,
             "link_m": r.link_m,
             "noise_sigma_m": r.noise_sigma_m,
+            "footprint_m": r.footprint_m,
             "n_segments": rs.n_segments,
+            "min_range_m": float(rs.ranges_m.min()),
             "share_returns": float((rs.ranges_m < cfg.front_end.range_cap_m).mean()),
             "share_cut_short_0p3m": float(cut.mean()),
         }

@@ -599,6 +599,7 @@ def test_slam_resimulated(tmp_path):
     assert real["logs"]["orebro"]["resimulated"] is None
     rs = res["logs"]["orebro"]["resimulated"]
     assert rs["cell_m"] == 0.01 and rs["link_m"] == 0.3 and rs["noise_sigma_m"] == 0.01
+    assert rs["footprint_m"] == 0.2 and rs["min_range_m"] > 0.1
     assert rs["n_segments"] > 1000 and 0.9 < rs["share_returns"] <= 1.0
     assert 0 <= rs["share_cut_short_0p3m"] < 0.2
     # the corrected poses are exact for the re-simulated scans: their consistency score

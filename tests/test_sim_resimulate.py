@@ -89,6 +89,30 @@ def test_link_m_decides_whether_neighbouring_end_points_form_a_wall():
     assert sparse.n_segments == az.size and wall.n_segments == az.size - 1
 
 
+def test_footprint_frees_where_the_robot_stood():
+    # a door at x = 2, closed in the first scan (seen from the origin), is passed through
+    # later: the robot stands at (2, 0) facing on, with no return of its own
+    az = np.deg2rad(np.arange(-20.0, 20.5, 1.0))
+    poses = np.array([[0.0, 0.0, 0.0], [2.0, 0.0, 0.0]])
+    ranges = np.vstack([2.0 / np.cos(az), np.full_like(az, MAX_RANGE)])
+    kw = dict(max_range_m=MAX_RANGE, noise_sigma_m=0.0)
+    ghost = resimulate_scans(ranges, az, poses, footprint_m=0.0, **kw)
+    free = resimulate_scans(ranges, az, poses, footprint_m=0.2, **kw)
+    ahead = int(np.argmin(np.abs(az)))
+    assert ghost.ranges_m[1, ahead] < 0.02  # inside the door that is no longer there
+    assert free.ranges_m[1, ahead] == MAX_RANGE
+    # no world cell within 0.2 m of a pose (cell centres)
+    j, i = np.nonzero(free.occupied)
+    centres = free.origin_m + (np.stack([i, j], 1) + 0.5) * free.cell_m
+    assert np.linalg.norm(centres[:, None] - poses[None, :, :2], axis=-1).min() > 0.2
+    # the first scan's beams through the freed 0.4 m of the door now pass (|y| < 0.2 m)
+    y = 2.0 * np.tan(az)
+    assert np.all(free.ranges_m[0, np.abs(y) < 0.17] == MAX_RANGE)
+    np.testing.assert_allclose(
+        free.ranges_m[0, np.abs(y) > 0.25], ranges[0, np.abs(y) > 0.25], atol=1e-9
+    )
+
+
 @pytest.mark.parametrize(
     "kwargs, match",
     [
@@ -101,6 +125,8 @@ def test_link_m_decides_whether_neighbouring_end_points_form_a_wall():
         (dict(noise_sigma_m=-0.01), "noise_sigma_m"),
         (dict(noise_sigma_m=float("nan")), "noise_sigma_m"),
         (dict(seed=-1), "seed"),
+        (dict(footprint_m=-0.1), "footprint_m"),
+        (dict(footprint_m=float("nan")), "footprint_m"),
         (dict(cell_m=1e-4), "cell_m"),  # a world of too many cells
     ],
 )

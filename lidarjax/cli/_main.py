@@ -333,7 +333,8 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="SEED",
         help="replace LOG's scans by lidarjax.sim.resimulate_scans of them: LOG's own "
         "surfaces at its ground-truth poses, cast again from those poses (1 cm cells, 1 cm "
-        "noise of seed SEED), so the errors are against exact poses",
+        "noise of seed SEED, no surface within 0.2 m of a pose), so the errors are against "
+        "exact poses",
     )
     p.add_argument(
         "--rpe-delta",

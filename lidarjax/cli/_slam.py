@@ -112,11 +112,14 @@ def _resimulated(args, loaded, idx, ranges, az, cap, usable):
     from ..sim import resimulate_scans
 
     gt = np.asarray(loaded.log.poses, float)[idx]
-    rs = resimulate_scans(ranges, az, gt, max_range_m=cap, seed=int(args.resimulate))
+    rs = resimulate_scans(
+        ranges, az, gt, max_range_m=cap, footprint_m=0.2, seed=int(args.resimulate)
+    )
     out = np.where(rs.ranges_m >= cap, usable, rs.ranges_m)
     info = {
         "seed": int(args.resimulate),
         "cell_m": rs.cell_m,
+        "footprint_m": 0.2,
         "n_segments": rs.n_segments,
         "share_returns": float(np.mean(out < cap)),
     }

@@ -4,8 +4,9 @@ A real log scored against its reference poses measures the reference's errors to
 shared CARMEN logs the corrected poses are 2-3 cm off per increment (docs/results/slam.md,
 stop 49). :func:`resimulate_scans` turns a log into a world whose poses are exact by
 construction. It joins each scan's neighbouring end points (at the given poses) into
-segments, rasterizes every scan's segments into one fine grid (the world), and casts every beam
-again from the same poses into that world, with fresh range noise. The
+segments, rasterizes every scan's segments into one fine grid (the world), frees the cells
+around every pose (the robot stood there), and casts every beam again from the same poses
+into that world, with fresh range noise. The
 scans keep the log's geometry (its corridors, clutter, beam layout and path), but they are
 consistent with the poses up to the noise, and the truth is the poses.
 
@@ -115,6 +116,21 @@ def _rasterize(segs, origin, cell, shape):
     return occ
 
 
+def _clear_footprints(ids, xy, origin, cell, radius):
+    """Free every cell whose centre lies within ``radius`` of a pose (in place): the robot
+    stood there, so no surface can (a door closed in one scan and passed through later,
+    a person who stood where the robot drove)."""
+    k = int(math.ceil(radius / cell))
+    di, dj = np.meshgrid(np.arange(-k, k + 1), np.arange(-k, k + 1), indexing="ij")
+    c = np.floor((xy - origin) / cell).astype(np.int64)  # the poses' cells
+    for a, b in zip(di.ravel(), dj.ravel()):
+        i, j = c[:, 0] + a, c[:, 1] + b
+        centre = origin + (np.stack([i, j], 1) + 0.5) * cell
+        near = np.linalg.norm(centre - xy, axis=1) <= radius
+        ok = near & (i >= 0) & (i < ids.shape[1]) & (j >= 0) & (j < ids.shape[0])
+        ids[j[ok], i[ok]] = -1
+
+
 def _cross(u, v):
     return u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0]
 
@@ -169,6 +185,7 @@ def resimulate_scans(
     cell_m: float = 0.01,
     link_m: float = 0.3,
     noise_sigma_m: float = 0.01,
+    footprint_m: float = 0.2,
     seed: int = 0,
 ) -> ResimulatedScans:
     """Re-simulate a log's scans in the world of its own surfaces at the given poses.
@@ -202,6 +219,10 @@ def resimulate_scans(
         link_m: largest gap (m) between neighbouring end points of a scan that still forms
             a surface; farther end points stay isolated points.
         noise_sigma_m: standard deviation of the readings' Gaussian noise (m).
+        footprint_m: no surface within this distance (m) of any pose: the robot stood
+            there. Without it, a door closed in one scan and driven through later, or a
+            person who stood where the robot drove, is a wall across the path, and the
+            scans near it read almost 0 m (0 turns it off).
         seed: noise seed (>= 0).
 
     Returns:
@@ -216,6 +237,12 @@ def resimulate_scans(
     max_range_m = _check_positive(max_range_m, "max_range_m")
     cell_m = _check_positive(cell_m, "cell_m")
     link_m = _check_positive(link_m, "link_m")
+    if isinstance(footprint_m, bool) or not (
+        isinstance(footprint_m, (int, float, np.floating, np.integer))
+        and math.isfinite(footprint_m)
+        and footprint_m >= 0
+    ):
+        raise ValueError(f"footprint_m must be finite and >= 0, got {footprint_m!r}")
     if isinstance(noise_sigma_m, bool) or not (
         isinstance(noise_sigma_m, (int, float, np.floating, np.integer))
         and math.isfinite(noise_sigma_m)
@@ -246,6 +273,8 @@ def resimulate_scans(
             f"cell_m={cell_m}; raise cell_m or lower max_range_m"
         )
     ids = _rasterize(segs, lo, cell_m, shape)
+    if footprint_m > 0:
+        _clear_footprints(ids, poses[:, :2], lo, cell_m, footprint_m)
 
     rng = np.random.default_rng([seed, 0x5E5])
     noise = rng.normal(0.0, noise_sigma_m, ranges.shape)

@@ -92,6 +92,10 @@ def _odometry(args, loaded, idx) -> tuple[np.ndarray, str]:
     return odo, "the log's"
 
 
+RESIMULATE_FOOTPRINT_M = 0.2
+"""``--resimulate``: no surface within this distance (m) of a pose (``footprint_m``)."""
+
+
 def _check_resimulate(args, loaded) -> None:
     if args.resimulate is None:
         return
@@ -105,21 +109,26 @@ def _resimulated(args, loaded, idx, ranges, az, cap, usable):
     """``--resimulate SEED``: LOG's scans re-simulated at its ground-truth poses
     (:func:`lidarjax.sim.resimulate_scans`, cast to the range cap; no-returns read the
     usable range, LOG's own no-return convention), and the settings for slam.json; or
-    ``(ranges, None)`` without the option."""
+    ``(ranges, None)`` without the option. The option was checked (:func:`_check_resimulate`)
+    before anything was written."""
     if args.resimulate is None:
         return ranges, None
-    _check_resimulate(args, loaded)
     from ..sim import resimulate_scans
 
     gt = np.asarray(loaded.log.poses, float)[idx]
     rs = resimulate_scans(
-        ranges, az, gt, max_range_m=cap, footprint_m=0.2, seed=int(args.resimulate)
+        ranges,
+        az,
+        gt,
+        max_range_m=cap,
+        footprint_m=RESIMULATE_FOOTPRINT_M,
+        seed=int(args.resimulate),
     )
     out = np.where(rs.ranges_m >= cap, usable, rs.ranges_m)
     info = {
         "seed": int(args.resimulate),
         "cell_m": rs.cell_m,
-        "footprint_m": 0.2,
+        "footprint_m": RESIMULATE_FOOTPRINT_M,
         "n_segments": rs.n_segments,
         "share_returns": float(np.mean(out < cap)),
     }

@@ -58,12 +58,14 @@ class ResimulatedScans:
     n_segments: int
 
 
-def _check_positive(value: object, name: str) -> float:
+def _check_number(value: object, name: str, *, positive: bool) -> float:
+    """A finite real number (no bool), ``> 0`` or ``>= 0``; else a ValueError naming it."""
+    want = "a positive finite number" if positive else "finite and >= 0"
     if isinstance(value, bool) or not isinstance(value, (int, float, np.floating, np.integer)):
-        raise ValueError(f"{name} must be a positive finite number, got {value!r}")
+        raise ValueError(f"{name} must be {want}, got {value!r}")
     v = float(value)
-    if not (math.isfinite(v) and v > 0):
-        raise ValueError(f"{name} must be a positive finite number, got {value!r}")
+    if not (math.isfinite(v) and (v > 0 if positive else v >= 0)):
+        raise ValueError(f"{name} must be {want}, got {value!r}")
     return v
 
 
@@ -234,21 +236,11 @@ def resimulate_scans(
     """
     poses = check_poses(poses_xy_yaw, "poses_xy_yaw")
     seed = check_seed(seed)
-    max_range_m = _check_positive(max_range_m, "max_range_m")
-    cell_m = _check_positive(cell_m, "cell_m")
-    link_m = _check_positive(link_m, "link_m")
-    if isinstance(footprint_m, bool) or not (
-        isinstance(footprint_m, (int, float, np.floating, np.integer))
-        and math.isfinite(footprint_m)
-        and footprint_m >= 0
-    ):
-        raise ValueError(f"footprint_m must be finite and >= 0, got {footprint_m!r}")
-    if isinstance(noise_sigma_m, bool) or not (
-        isinstance(noise_sigma_m, (int, float, np.floating, np.integer))
-        and math.isfinite(noise_sigma_m)
-        and noise_sigma_m >= 0
-    ):
-        raise ValueError(f"noise_sigma_m must be finite and >= 0, got {noise_sigma_m!r}")
+    max_range_m = _check_number(max_range_m, "max_range_m", positive=True)
+    cell_m = _check_number(cell_m, "cell_m", positive=True)
+    link_m = _check_number(link_m, "link_m", positive=True)
+    footprint_m = _check_number(footprint_m, "footprint_m", positive=False)
+    noise_sigma_m = _check_number(noise_sigma_m, "noise_sigma_m", positive=False)
     az = np.asarray(azimuths_rad, np.float64)
     if az.ndim != 1 or az.size < 1 or not np.all(np.isfinite(az)):
         raise ValueError(f"azimuths_rad must be a finite [B] array, got shape {az.shape}")

@@ -1212,6 +1212,7 @@ class SlamLoops:
     every: int = _f(count)
     wide_search_xy_m: float = _f(nonnegative)
     rounds: int = _f(count)
+    min_mean_log_likelihood: float | None = _f(finite)  # null: the model's default
 
 
 @dataclass

@@ -337,6 +337,7 @@ def main(cfg: DictConfig) -> None:
         min_separation=cfg.loops.min_separation,
         every=cfg.loops.every,
         wide_search_xy_m=cfg.loops.wide_search_xy_m,
+        min_mean_log_likelihood=cfg.loops.min_mean_log_likelihood,
     )
     back = slam.BackEndConfig(
         resolution_m=cfg.front_end.resolution_m,

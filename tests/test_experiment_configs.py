@@ -222,6 +222,12 @@ VALUE_ERRORS = [
     ("slam", ["azimuth_layout=centred"], "azimuth_layout = 'centred'", "must be one of"),
     ("slam", ["front_end.backend=cuda"], "front_end.backend = 'cuda'", "must be one of"),
     ("slam", ["front_end.grazing_cells=-1"], "front_end.grazing_cells = -1", ">= 0"),
+    (
+        "slam",
+        ["loops.min_mean_log_likelihood=inf"],
+        "loops.min_mean_log_likelihood = inf",
+        "finite",
+    ),
     ("slam", ["seeds=[0,1,0]"], "seeds = [0, 1, 0]", "must not repeat"),
     ("slam", ["seeds=[]"], "seeds = []", "must not be empty"),
     ("slam", ["seeds=[0,-2]"], "seeds[1] = -2", ">= 0"),

@@ -1213,6 +1213,8 @@ class SlamLoops:
     wide_search_xy_m: float = _f(nonnegative)
     rounds: int = _f(count)
     min_mean_log_likelihood: float | None = _f(finite)  # null: the model's default
+    scene_margin: float | None = _f(nonnegative)  # null: the model's default
+    scene_samples: int = _f(nonnegative)  # 0: the threshold is never lowered
 
 
 @dataclass

@@ -338,6 +338,8 @@ def main(cfg: DictConfig) -> None:
         every=cfg.loops.every,
         wide_search_xy_m=cfg.loops.wide_search_xy_m,
         min_mean_log_likelihood=cfg.loops.min_mean_log_likelihood,
+        scene_margin=cfg.loops.scene_margin,
+        scene_samples=cfg.loops.scene_samples,
     )
     back = slam.BackEndConfig(
         resolution_m=cfg.front_end.resolution_m,

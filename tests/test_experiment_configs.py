@@ -228,6 +228,8 @@ VALUE_ERRORS = [
         "loops.min_mean_log_likelihood = inf",
         "finite",
     ),
+    ("slam", ["loops.scene_margin=-1"], "loops.scene_margin = -1", ">= 0"),
+    ("slam", ["loops.scene_samples=-1"], "loops.scene_samples = -1", ">= 0"),
     ("slam", ["seeds=[0,1,0]"], "seeds = [0, 1, 0]", "must not repeat"),
     ("slam", ["seeds=[]"], "seeds = []", "must not be empty"),
     ("slam", ["seeds=[0,-2]"], "seeds[1] = -2", ">= 0"),

@@ -23,11 +23,13 @@ from lidarjax.slam import (
     GridMap,
     LoopConfig,
     Loops,
+    MatchResult,
     SlamConfig,
     SlamResult,
     find_loops,
     find_revisits,
     front_end_pose_graph,
+    grazing_lengths,
     grid_map,
     joint_objective,
     match_scan,
@@ -36,6 +38,7 @@ from lidarjax.slam import (
     optimize_joint,
     run_front_end,
     run_slam,
+    score_scan,
     trajectory_log_likelihood,
 )
 from lidarjax.slam._front_end import between_np, compose_np
@@ -593,8 +596,8 @@ def test_loop_threshold_follows_the_matching_model():
     default = LoopConfig()
     assert loops_module._min_mean_log_likelihood(default, decay) == 0.5
     assert loops_module._min_mean_log_likelihood(default, endpoint) == -1.5
-    assert loops_module._good(match, az, default, -1.5)
-    assert not loops_module._good(match, az, default, 0.5)
+    assert loops_module._good(match, az, default, lambda ll: ll >= -1.5)
+    assert not loops_module._good(match, az, default, lambda ll: ll >= 0.5)
     given = LoopConfig(min_mean_log_likelihood=-0.5)
     for fcfg in (decay, endpoint):
         assert loops_module._min_mean_log_likelihood(given, fcfg) == -0.5
@@ -604,6 +607,157 @@ def test_loop_threshold_follows_the_matching_model():
         MIN_MEAN_LOG_LIKELIHOOD["endpoint"] = 0.5
     with pytest.raises(ValueError, match="model"):
         FrontEndConfig(model="likelihood_field")
+
+
+def _uniform_grid(cfg, rate, unmapped_x_m=None):
+    """A GridMap with the same decay rate ``rate`` (1/m) in every cell of a 60 m square
+    around the origin; cells at ``x >= unmapped_x_m`` never traversed (``R = 0``)."""
+    g = GridMap(cfg.resolution_m, cfg.range_cap_m)
+    n = int(round(60.0 / cfg.resolution_m))
+    g.lo = np.array([-n // 2, -n // 2])
+    g.lengths = np.ones((n, n))
+    if unmapped_x_m is not None:
+        x = (g.lo[0] + np.arange(n) + 0.5) * cfg.resolution_m
+        g.lengths[x >= unmapped_x_m, :] = 0.0
+    g.hits = rate * g.lengths
+    return g
+
+
+@pytest.mark.parametrize("model", ["decay_rate", "endpoint"])
+def test_score_scan_on_uniform_rates_is_the_closed_form(model):
+    # in a uniform field of rate lam a HIT ray of range r scores log(lam + floor) - lam
+    # (r - gap) (gap: gap_cells cells, as the grazing cut of a wall seen head-on is one
+    # cell), a no-return -lam * cap; the endpoint model's field is the hit indicator, 1,
+    # and it has no free-space term. Rays ending in unmapped cells are left out.
+    cfg = FrontEndConfig(model=model)
+    lam = 0.2
+    az = np.linspace(-np.pi, np.pi, 90, endpoint=False)
+    pose = np.array([0.3, -0.2, 0.4])
+    # no-returns only away from the unmapped cells (a ray through them pays nothing there)
+    back = (np.cos(pose[2] + az) < -0.5) & (np.arange(90) % 3 == 0)
+    r = np.where(back, cfg.range_cap_m, 2.0 + (np.arange(90) % 5))
+    # the unmapped edge 3 cells or more from every end point (the end-point model's field
+    # is the hit indicator blurred by half a cell)
+    edge = 4.0
+    grid = _uniform_grid(cfg, lam, unmapped_x_m=edge)
+    mean_ll, n_used = score_scan(grid, az, r, pose, cfg)
+    hit = r < cfg.range_cap_m
+    end_x = pose[0] + r * np.cos(pose[2] + az)
+    # a HIT ray is used if its end point's cell or a neighbour was traversed
+    assert np.abs(end_x[hit] - edge).min() > 3 * cfg.resolution_m
+    used = ~hit | (end_x < edge)
+    if model == "endpoint":
+        ll = np.where(hit, np.log(1.0 + cfg.rate_floor), 0.0)
+    else:
+        # the grazing cut (tested on its own) widens the gap where neighbours form a
+        # surface seen at a slant
+        graze = grazing_lengths(az, r, cfg.range_cap_m, cfg.grazing_m, cfg.grazing_max_m)
+        gap = np.maximum(cfg.gap_cells * cfg.resolution_m, graze)
+        ll = np.where(hit, np.log(lam + cfg.rate_floor) - lam * (r - gap), -lam * cfg.range_cap_m)
+    assert 0 < used.sum() < used.size - 5  # some rays masked, most used
+    assert n_used == used.sum()
+    np.testing.assert_allclose(mean_ll, ll[used].mean(), rtol=1e-6)
+
+
+def test_score_scan_checks_the_pose():
+    grid = _uniform_grid(FrontEndConfig(), 0.2)
+    with pytest.raises(ValueError, match="pose_xy_yaw"):
+        score_scan(grid, AZ, np.full(AZ.shape, 3.0), np.array([0.0, np.nan, 0.0]), FrontEndConfig())
+
+
+def test_loop_threshold_is_lowered_to_the_scene_level(monkeypatch):
+    # the threshold is min(model's, level - margin); the level (a median of scans scored
+    # against their own neighbourhoods) is computed only when a match scores below the
+    # model's threshold, once per search; the end-point model and scene_samples=0 keep
+    # the model's threshold
+    from lidarjax.slam import SCENE_MARGIN
+
+    calls = []
+
+    def level_of(value):
+        def fake(*args):
+            calls.append(1)
+            return value
+
+        return fake
+
+    scans = (np.full((40, AZ.size), 3.0), AZ, np.zeros((40, 3)))
+    decay = FrontEndConfig()
+    margin = SCENE_MARGIN["decay_rate"]
+    assert margin > 0 and SCENE_MARGIN["endpoint"] is None
+    for level, want in ((-0.2, -0.2 - margin), (3.0, 0.5), (np.nan, 0.5)):
+        monkeypatch.setattr(loops_module, "scene_log_likelihood", level_of(level))
+        assert loops_module.loop_threshold(*scans, LoopConfig(), decay) == pytest.approx(want)
+    monkeypatch.setattr(loops_module, "scene_log_likelihood", level_of(-0.2))
+    calls.clear()
+    t = loops_module._Threshold(*scans, LoopConfig(), decay)
+    assert t.passes(0.6) and t.passes(0.5) and not calls  # above the model's: no level
+    assert t.passes(-0.2 - margin) and not t.passes(-0.21 - margin) and len(calls) == 1
+    assert loops_module.loop_threshold(*scans, LoopConfig(scene_margin=2.0), decay) == -2.2
+    for cfg, fcfg in (
+        (LoopConfig(), FrontEndConfig(model="endpoint")),
+        (LoopConfig(scene_samples=0), decay),
+        (LoopConfig(min_mean_log_likelihood=-3.0), decay),
+    ):
+        base = loops_module._min_mean_log_likelihood(cfg, fcfg)
+        assert loops_module.loop_threshold(*scans, cfg, fcfg) == base
+    for kwargs, name in (
+        ({"scene_margin": -1.0}, "scene_margin"),
+        ({"scene_margin": float("inf")}, "scene_margin"),
+        ({"scene_margin": True}, "scene_margin"),
+        ({"scene_samples": -1}, "scene_samples"),
+        ({"scene_samples": 2.0}, "scene_samples"),
+    ):
+        with pytest.raises(ValueError, match=name):
+            LoopConfig(**kwargs)
+
+
+@pytest.mark.parametrize("wide_ll", [0.0, 0.6])
+def test_wide_search_keeps_the_models_threshold(monkeypatch, wide_ll):
+    # the scene's lower threshold is for the local search only: a wide search over
+    # metres finds aliased places. Out 15 m and back: scan 59's candidate is scan 1,
+    # 29 m of path away (drift bound 1.7 m > the local search's 1 m). The local match
+    # fails on its search margin; the wide one passes every test but the mean
+    # log-likelihood, which must reach the model's 0.5 nats even though the scene's
+    # level (patched to -10) lowers the local threshold to -10.5
+    n, b = 60, 31
+    k = np.arange(n)
+    poses = np.zeros((n, 3))
+    poses[:, 0] = np.where(k <= 30, 0.5 * k, 15.0 - 0.5 * (k - 30))
+    az = np.linspace(-np.pi / 2, np.pi / 2, b)
+    ranges = np.full((n, b), 3.0)
+
+    def result(ll, margin):
+        return MatchResult(np.zeros(3), b, ll, np.diag([1e6, 1e6, 1e6]), margin, 0.0, True)
+
+    calls = []
+
+    def fake_match(grid, azimuths, rng, pose0, cfg, **kwargs):
+        calls.append(1)
+        return result(2.0, 0.0) if len(calls) == 1 else result(wide_ll, 100.0)
+
+    monkeypatch.setattr(loops_module, "match_scan", fake_match)
+    monkeypatch.setattr(loops_module, "_wide_search", lambda *a: (np.zeros(3), 100.0))
+    monkeypatch.setattr(loops_module, "scene_log_likelihood", lambda *a: -10.0)
+    cfg = LoopConfig(every=29, submap_half=0)
+    loops = find_loops(ranges, az, poses, cfg)
+    assert loops.n_tried == 1 and len(calls) == 2
+    np.testing.assert_array_equal(loops.edges, [[1, 59]] if wide_ll >= 0.5 else np.zeros((0, 2)))
+
+
+@pytest.mark.slow  # ~30 s: twenty submaps, twice
+def test_scene_level_is_high_on_a_consistent_trajectory(office_revisit_scans):
+    # the office's scans fit their neighbours at the true poses: the level is well above
+    # the model's threshold plus the margin (the threshold stands); poses jittered by
+    # 0.1 m and 0.05 rad put the neighbours' walls beside the scan's and lower it
+    truth, ranges = office_revisit_scans
+    cfg = LoopConfig(scene_samples=10)
+    level = loops_module.scene_log_likelihood(ranges, AZ, truth, cfg)
+    jitter = np.random.default_rng(0).normal(size=truth.shape) * np.array([0.1, 0.1, 0.05])
+    worse = loops_module.scene_log_likelihood(ranges, AZ, truth + jitter, cfg)
+    assert level > 0.5 + loops_module.SCENE_MARGIN["decay_rate"] + 1.0
+    assert worse < level - 1.0
+    assert np.isnan(loops_module.scene_log_likelihood(ranges[:8], AZ, truth[:8], cfg))
 
 
 @pytest.mark.slow  # ~40 s: the search twice with the end-point model
@@ -1040,6 +1194,14 @@ def test_find_loops_rejects_bad_previous_poses():
         find_loops(r, a, o, previous_poses=o[:-1])
     with pytest.raises(ValueError, match="previous_poses"):
         find_loops(r, a, o, previous_poses=o + np.nan)
+
+
+def test_find_loops_rejects_bad_level_poses():
+    r, a, o = _front_inputs()
+    with pytest.raises(ValueError, match="level_poses"):
+        find_loops(r, a, o, level_poses=o[:-1])
+    with pytest.raises(ValueError, match="level_poses"):
+        find_loops(r, a, o, level_poses=o + np.inf)
 
 
 def test_find_loops_skips_pairs_whose_relative_pose_has_not_moved(office_revisit_scans):

@@ -20,11 +20,15 @@ from ._front_end import grid_map as grid_map
 from ._front_end import match_scan as match_scan
 from ._front_end import odometry_sigmas as odometry_sigmas
 from ._front_end import run_front_end as run_front_end
+from ._front_end import score_scan as score_scan
 from ._loops import MIN_MEAN_LOG_LIKELIHOOD as MIN_MEAN_LOG_LIKELIHOOD
+from ._loops import SCENE_MARGIN as SCENE_MARGIN
 from ._loops import LoopConfig as LoopConfig
 from ._loops import Loops as Loops
 from ._loops import find_loops as find_loops
 from ._loops import find_revisits as find_revisits
+from ._loops import loop_threshold as loop_threshold
+from ._loops import scene_log_likelihood as scene_log_likelihood
 from ._pipeline import SlamConfig as SlamConfig
 from ._pipeline import SlamResult as SlamResult
 from ._pipeline import front_end_pose_graph as front_end_pose_graph

@@ -49,6 +49,7 @@ __all__ = [
     "match_scan",
     "odometry_sigmas",
     "run_front_end",
+    "score_scan",
 ]
 
 
@@ -785,6 +786,90 @@ class MatchResult:
         return float(np.linalg.eigvalsh(self.information[:2, :2])[0])
 
 
+def _window_rates(grid: GridMap, center_xy, cfg: FrontEndConfig):
+    """``(rates, seen, origin)`` of the matching window around ``center_xy``: the model's
+    rates (the hit indicator for the endpoint model), the traversed cells, and the
+    window's lower corner (m)."""
+    h, r, origin = grid.window(center_xy, cfg.window_cells)
+    seen = r > 1e-9
+    if cfg.model == "endpoint":
+        rates = (h > 0).astype(float)
+    elif cfg.prior_length_m > 0:
+        rates = (h + cfg.prior_hits) / (r + cfg.prior_length_m)
+    else:
+        rates = np.where(seen, h / np.where(seen, r, 1.0), 0.0)
+    return rates, seen, origin
+
+
+def _score_impl(rates, seen, origin, az, rng, graze, pose, cfg: FrontEndConfig):
+    """Jitted core of :func:`score_scan` (``cfg`` static): ``(mean log-likelihood per used
+    ray, n_used)`` of the last matching stage's data term at ``pose``."""
+    res = cfg.resolution_m
+    n = rates.shape[0]
+    b = cfg.blur_schedule_m[-1]
+    if cfg.model == "endpoint":
+        b = max(b, res / 2)  # as the match's last stage
+    field = SmoothDecayRateField(
+        DecayRateMap(
+            GridSpec(origin, res, (n, n)),
+            _blur(rates, b / res, cfg.backend),
+            jnp.zeros((), rates.dtype),
+        ),
+        n_nodes=cfg.n_nodes,
+        backend=cfg.backend,
+    )
+    p = se2(pose)
+    w = _ray_weights(seen, origin, res, az, rng, p, cfg)
+    w = (w if cfg.mask_unmapped else jnp.ones_like(w)).astype(rates.dtype)
+    gap = jnp.maximum(cfg.gap_cells * res, graze)
+    n_used = jnp.sum(w)
+    ll = jnp.sum(w * _scan_log_likelihoods(field, p, az, rng, cfg, gap))
+    return ll / jnp.maximum(n_used, 1.0), n_used
+
+
+_score_jit = jax.jit(_score_impl, static_argnames="cfg")
+
+
+def score_scan(
+    grid: GridMap,
+    azimuths: Float[Array, " b"],
+    ranges: Float[Array, " b"],
+    pose_xy_yaw: np.ndarray,
+    cfg: FrontEndConfig,
+) -> tuple[float, int]:
+    """One scan's fit to a map at a given pose, without matching: the mean log-likelihood
+    per used ray (nats) of :func:`match_scan`'s last stage (its data term, no prior) and
+    the number of used rays, with the rays ending in unmapped cells left out (judged at
+    ``pose_xy_yaw``).
+
+    Args:
+        grid: the map statistics.
+        azimuths: ``[b]`` beam angles (rad); ranges: ``[b]`` readings (m).
+        pose_xy_yaw: ``[3]`` the scan's pose ``(x m, y m, yaw rad)``.
+        cfg: settings (model, resolution, range cap, window, last blur, ...).
+
+    Returns:
+        ``(mean log-likelihood per used ray, n_used)``; ``(0.0, 0)`` when no ray is used.
+    """
+    pose = np.asarray(pose_xy_yaw, float)
+    if pose.shape != (3,) or not np.all(np.isfinite(pose)):
+        raise ValueError(f"pose_xy_yaw must be 3 finite numbers, got {pose_xy_yaw!r}")
+    rates, seen, origin = _window_rates(grid, pose[:2], cfg)
+    context, dt = cfg.precision()
+    with context:
+        mean_ll, n_used = _score_jit(
+            jnp.asarray(rates, dt),
+            jnp.asarray(seen),
+            jnp.asarray(origin, dt),
+            jnp.asarray(azimuths, dt),
+            jnp.asarray(ranges, dt),
+            jnp.asarray(_grazing(azimuths, ranges, cfg), dt),
+            jnp.asarray(pose, dt),
+            cfg,
+        )
+    return float(mean_ll), int(n_used)
+
+
 def match_scan(
     grid: GridMap,
     azimuths: Float[Array, " b"],
@@ -812,14 +897,7 @@ def match_scan(
     """
     pose0 = np.asarray(pose0_xy_yaw, float)
     prior = pose0 if prior_xy_yaw is None else np.asarray(prior_xy_yaw, float)
-    h, r, origin = grid.window(pose0[:2], cfg.window_cells)
-    seen = r > 1e-9
-    if cfg.model == "endpoint":
-        rates = (h > 0).astype(float)
-    elif cfg.prior_length_m > 0:
-        rates = (h + cfg.prior_hits) / (r + cfg.prior_length_m)
-    else:
-        rates = np.where(seen, h / np.where(seen, r, 1.0), 0.0)
+    rates, seen, origin = _window_rates(grid, pose0[:2], cfg)
     if prior_sigmas is None:
         prior_sigmas = (cfg.prior_sigma_xy_m, cfg.prior_sigma_xy_m, cfg.prior_sigma_yaw_rad)
     sig = np.asarray(prior_sigmas, float)

@@ -301,6 +301,7 @@ def run_slam(
                 cfg.front,
                 known=loops.edges,
                 previous_poses=searched,
+                level_poses=fe.poses,
                 progress=progress,
             )
             searched = pg_poses

@@ -1198,7 +1198,7 @@ class SlamOdometry:
 @dataclass
 class SlamFrontEnd:
     resolution_m: float = _f(positive)
-    range_cap_m: float = _f(positive)
+    range_cap_m: float | None = _f(positive)  # null: each log's own (slam.auto_range_cap)
     blur_schedule_m: list[float] = _f(nonempty, each=nonnegative)
     backend: str = _f(one_of("auto", "native", "jax"))
     grazing_cells: float = _f(nonnegative)

@@ -179,6 +179,8 @@ def _run_log(cfg, name, seed, out, front, loops, back, multi):
     ranges = np.minimum(log.ranges_m[:n], log.max_range_m)
     az = log.azimuths_rad
     usable = log.usable_range_m
+    if cfg.front_end.range_cap_m is None:  # the log's own (slam.auto_range_cap)
+        front = front.with_range_cap(slam.auto_range_cap(ranges, usable))
     resim = None
     if cfg.resimulate.enabled:
         # the log's own surfaces at the corrected poses, cast again from them: the
@@ -188,14 +190,14 @@ def _run_log(cfg, name, seed, out, front, loops, back, multi):
             ranges,
             az,
             gt,
-            max_range_m=cfg.front_end.range_cap_m,
+            max_range_m=front.range_cap_m,
             cell_m=r.cell_m,
             link_m=r.link_m,
             noise_sigma_m=r.noise_sigma_m,
             footprint_m=r.footprint_m,
             seed=seed,
         )
-        cut = (ranges < cfg.front_end.range_cap_m) & (rs.ranges_m < ranges - 0.3)
+        cut = (ranges < front.range_cap_m) & (rs.ranges_m < ranges - 0.3)
         resim = {
             "cell_m": r.cell_m,
             "link_m": r.link_m,
@@ -203,10 +205,10 @@ def _run_log(cfg, name, seed, out, front, loops, back, multi):
             "footprint_m": r.footprint_m,
             "n_segments": rs.n_segments,
             "min_range_m": float(rs.ranges_m.min()),
-            "share_returns": float((rs.ranges_m < cfg.front_end.range_cap_m).mean()),
+            "share_returns": float((rs.ranges_m < front.range_cap_m).mean()),
             "share_cut_short_0p3m": float(cut.mean()),
         }
-        ranges, usable = rs.ranges_m, cfg.front_end.range_cap_m
+        ranges, usable = rs.ranges_m, front.range_cap_m
     odo = wheel_odometry(
         gt,
         seed=seed,
@@ -310,6 +312,7 @@ def _run_log(cfg, name, seed, out, front, loops, back, multi):
         traj[(name, v)] = (absolute_trajectory_error(p, gt).aligned, s["errors_m"])
     result = {
         "n_scans": n,
+        "range_cap_m": front.range_cap_m,
         "azimuth_layout": cfg.azimuth_layout,
         "resimulated": resim,
         "scan_rate_hz": rate,
@@ -325,13 +328,13 @@ def main(cfg: DictConfig) -> None:
     out = output_dir()
     front = slam.FrontEndConfig(
         resolution_m=cfg.front_end.resolution_m,
-        range_cap_m=cfg.front_end.range_cap_m,
-        window_m=cfg.front_end.range_cap_m + 2.0,
         blur_schedule_m=tuple(cfg.front_end.blur_schedule_m),
         backend=cfg.front_end.backend,
         grazing_cells=cfg.front_end.grazing_cells,
         dtype=cfg.front_end.dtype,
     )
+    if cfg.front_end.range_cap_m is not None:  # else each log's own (_run_log)
+        front = front.with_range_cap(cfg.front_end.range_cap_m)
     loops = slam.LoopConfig(
         radius_m=cfg.loops.radius_m,
         min_separation=cfg.loops.min_separation,

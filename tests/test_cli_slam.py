@@ -309,9 +309,14 @@ def test_slam_map_localizes(office_slam, office_log, tmp_path):
 def test_range_cap_rule():
     from lidarjax.cli._slam import _range_cap
 
-    assert _range_cap(None, 80.0) == 20.0  # the front end's default
-    assert _range_cap(None, 18.6) == 18.6  # a shorter sensor: its usable range
-    assert _range_cap(10.0, 18.6) == 10.0
+    near = np.full((10, 50), 5.0)  # every return within 20 m
+    assert _range_cap(None, 80.0, near) == 20.0
+    assert _range_cap(None, 18.6, near) == 18.6  # a shorter sensor: its usable range
+    assert _range_cap(10.0, 18.6, near) == 10.0  # given: as given
+    far = near.copy()
+    far[:, :5] = 35.0  # 10 % of the returns between 30 and 40 m
+    assert _range_cap(None, 80.0, far) == 40.0
+    assert _range_cap(None, 37.0, far) == 37.0  # at most the usable range
 
 
 def _args(**kw):

@@ -545,6 +545,9 @@ def test_slam_small(tmp_path):
         "icp_gtsam,reference_back_end]",
     )
     assert res["logs"]["orebro"]["azimuth_layout"] == "sweep"  # configs/slam.yaml
+    # the log's own range cap (configs/slam.yaml: null): orebro's first 40 scans keep
+    # 98 % of their returns within 20 m
+    assert res["logs"]["orebro"]["range_cap_m"] == 20.0
     assert res["seeds"] == [0] and "by_seed" not in res and "seed_summary" not in res
     per = res["logs"]["orebro"]["variants"]
     assert set(per) == {

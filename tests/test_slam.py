@@ -26,6 +26,7 @@ from lidarjax.slam import (
     MatchResult,
     SlamConfig,
     SlamResult,
+    auto_range_cap,
     find_loops,
     find_revisits,
     front_end_pose_graph,
@@ -607,6 +608,63 @@ def test_loop_threshold_follows_the_matching_model():
         MIN_MEAN_LOG_LIKELIHOOD["endpoint"] = 0.5
     with pytest.raises(ValueError, match="model"):
         FrontEndConfig(model="likelihood_field")
+
+
+def test_auto_range_cap_keeps_the_share_of_returns():
+    # the smallest of 20 / 30 / 40 m keeping 98 % of the returns (readings below the
+    # usable range; no-returns and inf readings do not count), at most the usable range
+    rng = np.random.default_rng(0)
+    near = rng.uniform(0.5, 19.0, size=(20, 100))
+    assert auto_range_cap(near, 80.0) == 20.0
+    mid = near.copy()
+    mid[:, :3] = 25.0  # 3 % between 20 and 30 m
+    assert auto_range_cap(mid, 80.0) == 30.0
+    assert auto_range_cap(mid, 80.0, share=0.97) == 20.0
+    far = near.copy()
+    far[:, :3] = 35.0
+    assert auto_range_cap(far, 80.0) == 40.0
+    beyond = near.copy()
+    beyond[:, :10] = 60.0  # beyond the largest cap: the largest
+    assert auto_range_cap(beyond, 80.0) == 40.0
+    assert auto_range_cap(far, 36.0) == 36.0  # never beyond the usable range
+    assert auto_range_cap(far, 33.0) == 20.0  # 35 m readings are no-returns there
+    assert auto_range_cap(near, 12.0) == 12.0
+    # readings at the usable range (no-returns) and inf are not returns
+    noret = near.copy()
+    noret[:, :30] = 50.0
+    assert auto_range_cap(noret, 50.0) == 20.0
+    noret[:, :30] = np.inf
+    assert auto_range_cap(noret, 80.0) == 20.0
+    assert auto_range_cap(np.full((3, 4), np.inf), 80.0) == 40.0  # no return at all
+    assert auto_range_cap(mid, 80.0, caps_m=(10.0, 20.0, 26.0)) == 26.0
+    for kwargs, name in (
+        ({"share": 0.0}, "share"),
+        ({"share": 1.5}, "share"),
+        ({"caps_m": (30.0, 20.0)}, "caps_m"),
+        ({"caps_m": ()}, "caps_m"),
+        ({"caps_m": (20.0, -1.0)}, "caps_m"),
+    ):
+        with pytest.raises(ValueError, match=name):
+            auto_range_cap(near, 80.0, **kwargs)
+    with pytest.raises(ValueError, match="ranges_m"):
+        auto_range_cap(np.where(np.eye(20, 100, dtype=bool), np.nan, near), 80.0)
+    with pytest.raises(ValueError, match="usable_range_m"):
+        auto_range_cap(near, 0.0)
+
+
+@pytest.mark.parametrize("res", [0.025, 0.05, 0.1])
+@pytest.mark.parametrize("cap", [8.0, 20.0, 30.0, 40.0])
+def test_front_end_with_range_cap_keeps_a_node_per_cell(cap, res):
+    f = FrontEndConfig(resolution_m=res, model="endpoint").with_range_cap(cap)
+    assert f.range_cap_m == cap and f.window_m == cap + 2.0 and f.resolution_m == res
+    assert f.model == "endpoint"  # the other settings kept
+    assert f.n_nodes % 512 == 0
+    assert cap / f.n_nodes <= 0.79 * res  # a node every 0.78 cells or less
+    assert cap / (f.n_nodes - 512) > 0.78 * res if f.n_nodes > 512 else True  # no more
+    if (cap, res) == (20.0, 0.05):
+        assert FrontEndConfig().with_range_cap(cap) == FrontEndConfig()  # the defaults
+    with pytest.raises(ValueError, match="range_cap_m"):
+        FrontEndConfig().with_range_cap(float("nan"))
 
 
 def _uniform_grid(cfg, rate, unmapped_x_m=None):

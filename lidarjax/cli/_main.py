@@ -257,8 +257,9 @@ def build_parser() -> argparse.ArgumentParser:
         decay-rate map of the scans before it (coarse to fine, from the odometry's
         prediction), loop closures are searched against earlier visits, and a pose graph
         (and optionally a joint or alternating back end over all poses and the map)
-        corrects the drift. Readings at or beyond --range-cap (default 20 m, or the
-        sensor's usable range where shorter) are no-returns. The shared CARMEN logs'
+        corrects the drift. Readings at or beyond --range-cap (default: the smallest of
+        20, 30 and 40 m that keeps 98 % of the log's returns, at most the sensor's
+        usable range) are no-returns. The shared CARMEN logs'
         odometry equals their corrected poses; --drift SEED simulates a drifting wheel
         odometry from them instead (the settings of configs/slam.yaml), as the SLAM
         experiment does. Writes into OUT: trajectory.tum (the estimate), front_end.tum,
@@ -299,8 +300,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--range-cap",
         type=float,
         metavar="M",
-        help="readings at or beyond this range are no-returns (default: 20 m, or the "
-        "log's usable range where shorter)",
+        help="readings at or beyond this range are no-returns (default: the smallest of "
+        "20, 30 and 40 m that keeps 98 %% of the selected scans' returns, at most the "
+        "log's usable range: lidarjax.slam.auto_range_cap)",
     )
     p.add_argument("--resolution", type=float, default=0.05, metavar="M", help="cell size (m)")
     p.add_argument(

@@ -30,9 +30,6 @@ DRIFT = {
 """``--drift``: :func:`lidarjax.sim.wheel_odometry`'s settings, those of
 ``configs/slam.yaml`` (5 % of each step's length, 1 deg per m of heading noise, 0.3 deg
 per m of heading bias, 2 % of each turn)."""
-DEFAULT_RANGE_CAP_M = 20.0
-"""The front end's range cap where the log's sensor reaches farther
-(:class:`lidarjax.slam.FrontEndConfig`'s default)."""
 SAME_POSES_M = 1e-6
 """Odometry within this of the ground truth at every scan (m, rad) equals it."""
 MAX_WINDOW_CELLS = 4000**2
@@ -47,12 +44,15 @@ ODOMETRY_SIGMAS = (
 """The :class:`lidarjax.slam.FrontEndConfig` fields ``--odometry-noise`` scales."""
 
 
-def _range_cap(value: float | None, usable: float) -> float:
+def _range_cap(value: float | None, usable: float, ranges: np.ndarray) -> float:
     """``--range-cap``: readings at or beyond it are no-returns to the front end. At most
     the log's usable range: a reading beyond that is already a no-return, and a cap above
-    it would read the sensor's no-return value as a wall."""
+    it would read the sensor's no-return value as a wall. Default: the smallest of 20, 30
+    and 40 m that keeps 98 % of ``ranges``' returns (:func:`lidarjax.slam.auto_range_cap`)."""
     if value is None:
-        return min(DEFAULT_RANGE_CAP_M, usable)
+        from .. import slam
+
+        return slam.auto_range_cap(ranges, usable)
     cap = _positive(value, "--range-cap")
     if cap <= R_MIN_M:
         raise CliInputError("--range-cap", f"must exceed {R_MIN_M} m, got {cap}")
@@ -216,7 +216,10 @@ def cmd_slam(args) -> int:
         raise CliInputError("--scans", "select at least 2 scans")
     _check_resimulate(args, loaded)
     usable = float(log.usable_range_m)
-    cap = _range_cap(args.range_cap, usable)
+    # non-finite readings (a bag's inf) and readings at or beyond the usable range are
+    # no-returns: clipped to the usable range, at or beyond the cap
+    ranges = np.minimum(scan_ranges(log, usable)[idx], usable)
+    cap = _range_cap(args.range_cap, usable, ranges)
     side = 2.0 * (cap + 2.0) / resolution  # the front end's map window, in cells
     if side**2 > MAX_WINDOW_CELLS:
         raise CliInputError(
@@ -228,9 +231,6 @@ def cmd_slam(args) -> int:
     odo, odo_source = _odometry(args, loaded, idx)
     out = out_dir(args.out)
     az = np.asarray(log.azimuths_rad, float)
-    # non-finite readings (a bag's inf) and readings at or beyond the usable range are
-    # no-returns: clipped to the usable range, at or beyond the cap
-    ranges = np.minimum(scan_ranges(log, usable)[idx], usable)
     ranges, resim = _resimulated(args, loaded, idx, ranges, az, cap, usable)
     if resim is not None:  # the map below is built from the same scans
         all_ranges = np.array(log.ranges_m, float)
@@ -240,13 +240,11 @@ def cmd_slam(args) -> int:
     base = slam.FrontEndConfig()
     front = slam.FrontEndConfig(
         model=args.model.replace("-", "_"),
-        range_cap_m=cap,
-        window_m=cap + 2.0,
         resolution_m=resolution,
         grazing_cells=grazing,
         grazing_max_m=max(base.grazing_max_m, grazing * resolution),
         **{k: noise * getattr(base, k) for k in ODOMETRY_SIGMAS},
-    )
+    ).with_range_cap(cap)
     cfg = slam.SlamConfig(
         front=front,
         back=slam.BackEndConfig(resolution_m=resolution, range_cap_m=min(10.0, cap)),

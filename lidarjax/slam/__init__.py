@@ -11,10 +11,12 @@ from ._back_end import trajectory_log_likelihood as trajectory_log_likelihood
 from ._baselines import IcpSlamResult as IcpSlamResult
 from ._baselines import icp_pose_graph_slam as icp_pose_graph_slam
 from ._front_end import MATCHING_MODELS as MATCHING_MODELS
+from ._front_end import RANGE_CAPS_M as RANGE_CAPS_M
 from ._front_end import FrontEndConfig as FrontEndConfig
 from ._front_end import FrontEndResult as FrontEndResult
 from ._front_end import GridMap as GridMap
 from ._front_end import MatchResult as MatchResult
+from ._front_end import auto_range_cap as auto_range_cap
 from ._front_end import grazing_lengths as grazing_lengths
 from ._front_end import grid_map as grid_map
 from ._front_end import match_scan as match_scan

@@ -41,6 +41,8 @@ from ..raytrace import GridSpec, accumulate
 from ._search import correlative_search
 
 __all__ = [
+    "RANGE_CAPS_M",
+    "auto_range_cap",
     "FrontEndConfig",
     "FrontEndResult",
     "GridMap",
@@ -349,6 +351,16 @@ class FrontEndConfig:
         if not (math.isfinite(self.rate_floor) and self.rate_floor >= 0):
             raise ValueError(f"rate_floor must be finite and >= 0, got {self.rate_floor!r}")
 
+    def with_range_cap(self, range_cap_m: float) -> FrontEndConfig:
+        """These settings with another range cap (m): the map window ``range_cap_m + 2``
+        m, and 512 optical-depth nodes per 400 cells of range (a node every 0.78 cells or
+        less: 512 at 20 m in 0.05 m cells, 1024 at 30 or 40 m)."""
+        cap = float(range_cap_m)
+        if not (math.isfinite(cap) and cap > 0):
+            raise ValueError(f"range_cap_m must be a positive finite number, got {range_cap_m!r}")
+        nodes = 512 * max(1, math.ceil(cap / (400.0 * self.resolution_m) - 1e-9))
+        return dataclasses.replace(self, range_cap_m=cap, window_m=cap + 2.0, n_nodes=nodes)
+
     @property
     def window_cells(self) -> int:
         """Cells per side of the matching window."""
@@ -367,6 +379,60 @@ class FrontEndConfig:
         """Width of the grazing cut (m): ``grazing_cells * resolution_m``, 0 for the
         endpoint model (no free-space term)."""
         return 0.0 if self.model == "endpoint" else self.grazing_cells * self.resolution_m
+
+
+#: Range caps (m) :func:`auto_range_cap` chooses from.
+RANGE_CAPS_M = (20.0, 30.0, 40.0)
+
+
+def auto_range_cap(
+    ranges_m: np.ndarray,
+    usable_range_m: float,
+    *,
+    share: float = 0.98,
+    caps_m: tuple[float, ...] = RANGE_CAPS_M,
+) -> float:
+    """The front end's range cap for a log: the smallest of ``caps_m`` that keeps
+    ``share`` of its returns (readings below ``usable_range_m``), else the largest, and at
+    most ``usable_range_m`` (a reading there is a no-return already).
+
+    Far readings are the least accurate, but in a hall they are the walls. 20 m keeps 98 %
+    or more of the returns of intel, fhw, orebro, csail, belgioioso and edmonton (their
+    caps stay 20 m, or the usable range), 96 % of freiburg-101's (30 m), 87 % of
+    acapulco's and 70 % of freiburg-campus's (40 m). On acapulco (drift seed 0) 40 m took
+    the front end's ATE from 1.64 to 0.36 m and the pose graph's from 0.258 to 0.146 m.
+
+    Args:
+        ranges_m: ``[N B]`` (or any shape) readings (m); non-finite ones are no-returns.
+        usable_range_m: the sensor's usable range (m); readings at or beyond it are
+            no-returns.
+        share: fraction of the returns the cap keeps, in ``(0, 1]``.
+        caps_m: candidate caps (m), increasing, positive.
+
+    Returns:
+        The cap (m).
+    """
+    r = np.asarray(ranges_m, float)
+    u = float(usable_range_m)
+    if not (math.isfinite(u) and u > 0):
+        raise ValueError(f"usable_range_m must be a positive finite number, got {usable_range_m!r}")
+    if isinstance(share, bool) or not (isinstance(share, (int, float)) and 0 < share <= 1):
+        raise ValueError(f"share must be in (0, 1], got {share!r}")
+    caps = np.asarray(caps_m, float)
+    if caps.ndim != 1 or caps.size == 0 or not np.all(np.isfinite(caps) & (caps > 0)):
+        raise ValueError(f"caps_m must be a non-empty sequence of positive numbers, got {caps_m!r}")
+    if np.any(np.diff(caps) <= 0):
+        raise ValueError(f"caps_m must be increasing, got {caps_m!r}")
+    if np.any(np.isnan(r)) or np.any(r < 0):
+        raise ValueError("ranges_m must be >= 0 and not NaN")
+    returns = r[np.isfinite(r) & (r < u)]
+    cap = float(caps[-1])
+    if returns.size:
+        for c in caps:
+            if np.mean(returns < c) >= share:
+                cap = float(c)
+                break
+    return min(cap, u)
 
 
 def grazing_lengths(

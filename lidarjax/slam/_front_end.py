@@ -107,7 +107,10 @@ class FrontEndConfig:
             (10 m: 88-98 %); front-end ATE (drift seeds 0-2 on orebro, 0-1 on fhw, 0 on
             intel) went from 2.07 / 1.33 / 0.98, 1.57 / 1.60 and 0.277 m at 10 m to
             0.89 / 0.64 / 0.44, 1.46 / 1.17 and 0.282 m at 20 m (orebro, seed 0: the
-            heading error summed over scans 7-90 went from -0.29 to -0.007 rad).
+            heading error summed over scans 7-90 went from -0.29 to -0.007 rad). For a
+            log whose walls lie farther, :func:`auto_range_cap` chooses 30 or 40 m (the
+            command line's and the experiment's default), and :meth:`with_range_cap`
+            sets the window and the nodes to match.
         blur_schedule_m: Gaussian blur widths (m) of the coarse-to-fine matching stages.
         window_m: half width of the square map window a scan is matched against (m); at
             least ``range_cap_m`` plus the largest expected motion between scans.

@@ -818,6 +818,15 @@ def test_scene_level_is_high_on_a_consistent_trajectory(office_revisit_scans):
     assert np.isnan(loops_module.scene_log_likelihood(ranges[:8], AZ, truth[:8], cfg))
 
 
+def test_scene_level_checks_its_inputs():
+    r, a, o = _front_inputs(n=20)
+    with pytest.raises(ValueError, match="ranges_m"):
+        loops_module.scene_log_likelihood(-r, a, o)
+    with pytest.raises(ValueError, match="poses"):
+        loops_module.scene_log_likelihood(r, a, o[:-1])
+    assert np.isnan(loops_module.scene_log_likelihood(r, a, o, LoopConfig(scene_samples=0)))
+
+
 @pytest.mark.slow  # ~40 s: the search twice with the end-point model
 def test_find_loops_closes_loops_with_the_endpoint_model(office_revisit_scans):
     # the end-point model's log-likelihoods lie below the decay-rate threshold (0.5 nats

@@ -361,9 +361,10 @@ def scene_log_likelihood(
     submap_half .. k + submap_half`` (``k`` left out), the submap a loop match is scored
     against. Nothing is matched.
 
-    The level is the scene's: an office whose walls are metres away and seen by many
-    rays scores 1.2-2 nats per ray under the decay-rate model on the shared logs (intel,
-    fhw, orebro), a hall whose walls lie beyond the range cap (acapulco) about -0.3.
+    The level is the scene's: under the decay-rate model at the 20 m range cap, the
+    front ends of intel, fhw and orebro (drift seeds 0-5) score 2.65-2.85, 1.03-1.18 and
+    1.63-1.75 nats per ray; acapulco, a hall whose walls lie mostly beyond the cap,
+    -0.20 to -0.25.
 
     Args:
         ranges_m: ``[N B]`` readings (m).
@@ -382,6 +383,8 @@ def scene_log_likelihood(
     az = np.asarray(azimuths_rad, float)
     poses = np.asarray(poses, float)
     _check_scans(rng, az, poses)
+    if np.any(np.isnan(rng)) or np.any(rng < 0):
+        raise ValueError("ranges_m must be >= 0 and not NaN")
     n, h = rng.shape[0], cfg.submap_half
     if n < 2 * h + 1 or h == 0:
         return math.nan
@@ -412,14 +415,14 @@ def loop_threshold(
     default :data:`SCENE_MARGIN`) where that is lower. With ``cfg.scene_samples = 0``
     or no margin, the model's threshold.
 
-    Measured with the decay-rate model on the shared logs' front ends (drift seed 0):
-    the loop matches that pass every other test and are more than 0.3 m off the
-    corrected poses' relative pose (2 of 284 on intel, 0 of 18 on orebro, 2 of 72 on
-    acapulco) score -5.5 to -4.8 nats per ray, but one on intel scores 2.1; the rest
-    score down to -2.9. On acapulco, a hall whose walls lie mostly beyond the 20 m range
-    cap (level -0.25 nats), the model's 0.5 nats accepted 13 of its 72 candidates; at the
-    scene's threshold (-0.75 nats), 50. On intel, fhw and orebro (drift seeds 0-5) the
-    levels are 1.0-2.8 nats and the threshold stays 0.5.
+    Measured with the decay-rate model on the shared logs' front ends (drift seed 0, 20 m
+    range cap): of the loop matches that pass every other test, those 0.3 m or more off
+    the corrected poses' relative pose (2 of 284 on intel, 1 of 90 on fhw, 0 of 18 on
+    orebro, 2 of 72 on acapulco) score -5.5 to -4.8 nats per ray but for two 0.30-0.31 m
+    off at 2.1; the rest score down to -2.9. On acapulco, a hall whose walls lie mostly
+    beyond the cap (level -0.25 nats), the model's 0.5 nats accepted 13 of its 72
+    candidates; at the scene's threshold (-0.75 nats), 50. On intel, fhw and orebro
+    (drift seeds 0-5) the levels are 1.0-2.9 nats and the threshold stays 0.5.
 
     Args:
         ranges_m, azimuths_rad, poses, cfg, front_cfg: as :func:`find_loops`.

@@ -855,10 +855,11 @@ class MatchResult:
         return float(np.linalg.eigvalsh(self.information[:2, :2])[0])
 
 
-def _window_rates(grid: GridMap, center_xy, cfg: FrontEndConfig):
-    """``(rates, seen, origin)`` of the matching window around ``center_xy``: the model's
-    rates (the hit indicator for the endpoint model), the traversed cells, and the
-    window's lower corner (m)."""
+def _window_inputs(grid: GridMap, center_xy, azimuths, ranges, cfg: FrontEndConfig, dt):
+    """The jitted matcher's and scorer's map and scan inputs, as ``dt`` arrays: the
+    model's rates in the window around ``center_xy`` (the hit indicator for the endpoint
+    model), its traversed cells, its lower corner (m), the scan's azimuths and ranges and
+    its grazing lengths (:func:`_grazing`)."""
     h, r, origin = grid.window(center_xy, cfg.window_cells)
     seen = r > 1e-9
     if cfg.model == "endpoint":
@@ -867,7 +868,14 @@ def _window_rates(grid: GridMap, center_xy, cfg: FrontEndConfig):
         rates = (h + cfg.prior_hits) / (r + cfg.prior_length_m)
     else:
         rates = np.where(seen, h / np.where(seen, r, 1.0), 0.0)
-    return rates, seen, origin
+    return (
+        jnp.asarray(rates, dt),
+        jnp.asarray(seen),
+        jnp.asarray(origin, dt),
+        jnp.asarray(azimuths, dt),
+        jnp.asarray(ranges, dt),
+        jnp.asarray(_grazing(azimuths, ranges, cfg), dt),
+    )
 
 
 def _score_impl(rates, seen, origin, az, rng, graze, pose, cfg: FrontEndConfig):
@@ -923,19 +931,10 @@ def score_scan(
     pose = np.asarray(pose_xy_yaw, float)
     if pose.shape != (3,) or not np.all(np.isfinite(pose)):
         raise ValueError(f"pose_xy_yaw must be 3 finite numbers, got {pose_xy_yaw!r}")
-    rates, seen, origin = _window_rates(grid, pose[:2], cfg)
     context, dt = cfg.precision()
     with context:
-        mean_ll, n_used = _score_jit(
-            jnp.asarray(rates, dt),
-            jnp.asarray(seen),
-            jnp.asarray(origin, dt),
-            jnp.asarray(azimuths, dt),
-            jnp.asarray(ranges, dt),
-            jnp.asarray(_grazing(azimuths, ranges, cfg), dt),
-            jnp.asarray(pose, dt),
-            cfg,
-        )
+        inputs = _window_inputs(grid, pose[:2], azimuths, ranges, cfg, dt)
+        mean_ll, n_used = _score_jit(*inputs, jnp.asarray(pose, dt), cfg)
     return float(mean_ll), int(n_used)
 
 
@@ -966,7 +965,6 @@ def match_scan(
     """
     pose0 = np.asarray(pose0_xy_yaw, float)
     prior = pose0 if prior_xy_yaw is None else np.asarray(prior_xy_yaw, float)
-    rates, seen, origin = _window_rates(grid, pose0[:2], cfg)
     if prior_sigmas is None:
         prior_sigmas = (cfg.prior_sigma_xy_m, cfg.prior_sigma_xy_m, cfg.prior_sigma_yaw_rad)
     sig = np.asarray(prior_sigmas, float)
@@ -974,13 +972,9 @@ def match_scan(
         raise ValueError(f"prior_sigmas must be 3 positive finite numbers, got {sig}")
     context, dt = cfg.precision()
     with context:
+        inputs = _window_inputs(grid, pose0[:2], azimuths, ranges, cfg, dt)
         pose, n_used, mean_ll, info, s_best, s_runner, ok = _match_jit(
-            jnp.asarray(rates, dt),
-            jnp.asarray(seen),
-            jnp.asarray(origin, dt),
-            jnp.asarray(azimuths, dt),
-            jnp.asarray(ranges, dt),
-            jnp.asarray(_grazing(azimuths, ranges, cfg), dt),
+            *inputs,
             jnp.asarray(pose0, dt),
             jnp.asarray(prior, dt),
             jnp.asarray(sig, dt),

@@ -1211,6 +1211,7 @@ class SlamLoops:
     min_separation: int = _f(count)
     every: int = _f(count)
     wide_search_xy_m: float = _f(nonnegative)
+    far_radius_m: float = _f(nonnegative)  # 0: no far candidates
     rounds: int = _f(count)
     min_mean_log_likelihood: float | None = _f(finite)  # null: the model's default
     scene_margin: float | None = _f(nonnegative)  # null: the model's default

@@ -340,6 +340,7 @@ def main(cfg: DictConfig) -> None:
         min_separation=cfg.loops.min_separation,
         every=cfg.loops.every,
         wide_search_xy_m=cfg.loops.wide_search_xy_m,
+        far_radius_m=cfg.loops.far_radius_m,
         min_mean_log_likelihood=cfg.loops.min_mean_log_likelihood,
         scene_margin=cfg.loops.scene_margin,
         scene_samples=cfg.loops.scene_samples,

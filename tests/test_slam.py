@@ -917,6 +917,37 @@ def test_find_loops_wide_search_closes_a_far_revisit(office_far_revisit):
     assert added.any() and xy[added].max() < 0.07 and yaw[added].max() < 0.012
 
 
+@pytest.fixture(scope="module")
+def office_farther_revisit(office_revisit_scans):
+    """The revisit with its estimate 7 m off across the office (no earlier scan within the
+    loop radius of 4 m, as on a corridor the estimate drifted along): loops without and
+    with far candidates (a drift bound of 0.2 m per m, 8.8 m after the lap)."""
+    truth, ranges = office_revisit_scans
+    est = truth.copy()
+    est[100:, 1] -= 7.0
+    cfg = LoopConfig(every=5, wide_search_xy_m=4.0, far_radius_m=8.0, wide_drift_per_m=0.2)
+    without = find_loops(ranges, AZ, est, dataclasses.replace(cfg, far_radius_m=0.0))
+    # the default drift bound (0.06 m per m: 2.6 m after the lap) rules the 7 m out
+    bound = find_loops(ranges, AZ, est, dataclasses.replace(cfg, wide_drift_per_m=0.06))
+    return truth, est, without, bound, find_loops(ranges, AZ, est, cfg)
+
+
+@pytest.mark.slow  # ~60 s on 2 busy cores
+def test_find_loops_far_candidates_close_a_revisit_beyond_the_radius(office_farther_revisit):
+    truth, est, without, bound, far = office_farther_revisit
+    # no scan of the revisit has an earlier scan within the loop radius
+    d = np.hypot(*(est[100:, None, :2] - est[None, :100, :2]).T).min()
+    assert d > 4.0
+    assert not (without.edges[:, 1] >= 100).any()
+    assert not (bound.edges[:, 1] >= 100).any()
+    got = far.edges[:, 1] >= 100
+    xy, yaw = _loop_errors(truth, far)
+    assert got.sum() >= 3  # measured: 6 of the revisit's 7 searched scans, 0.5-1.8 cm off
+    assert xy[got].max() < 0.07 and yaw[got].max() < 0.012
+    # the rest of the log is unchanged
+    assert {tuple(e) for e in far.edges[~got]} == {tuple(e) for e in without.edges}
+
+
 def _overlap_by_distance(ranges, poses, j, i, half, dist):
     """Brute force: the fraction of scan i's end points within ``dist`` (m) of an end
     point of scans j-half..j+half (all readings below MAX_RANGE)."""
@@ -1221,6 +1252,9 @@ def test_back_ends_reject_bad_inputs(change, name, optimize):
         ({"wide_step_yaw_rad": -0.01}, "wide_step_yaw_rad"),
         ({"wide_exclude_m": float("inf")}, "wide_exclude_m"),
         ({"wide_drift_per_m": 0.0}, "wide_drift_per_m"),
+        ({"far_radius_m": 4.0}, "far_radius_m"),
+        ({"far_radius_m": -1.0}, "far_radius_m"),
+        ({"far_radius_m": float("inf")}, "far_radius_m"),
         ({"retry_xy_m": -0.1}, "retry_xy_m"),
         ({"retry_yaw_rad": float("nan")}, "retry_yaw_rad"),
         ({"min_mean_log_likelihood": float("nan")}, "min_mean_log_likelihood"),

@@ -150,7 +150,7 @@ class LoopConfig:
             pairs within 7 cm (the two wrong ones failed ``min_margin``). But a whole run
             there with 10 m gave 3.186 m against 3.188 m (282 loops against 271): 34 of
             its loops are more than 1 m off (aliased places along the corridors), and
-            they hold the pose graph where the front end put it. Elsewhere it changed nothing (intel, orebro, acapulco: 4-6, 12 and 25-26
+            the robust pose graph takes the new loops' 6 m corrections for outliers. Elsewhere it changed nothing (intel, orebro, acapulco: 4-6, 12 and 25-26
             far candidates per run, none accepted) or within the seeds' spread (fhw) and
             cost time (acapulco +10 %), so it is off until a consistency check among the
             loops can use it.

@@ -148,12 +148,12 @@ class LoopConfig:
             infinite-corridor (drift seed 0) the last 190 scans' revisits were 6.0-7.9 m
             off along the corridors, and at 10 m the wide search put four of six such
             pairs within 7 cm (the two wrong ones failed ``min_margin``). But a whole run
-            there with 10 m gave 3.186 m against 3.188 m (282 loops against 271): 34 of
-            its loops are more than 1 m off (aliased places along the corridors), and
-            the robust pose graph takes the new loops' 6 m corrections for outliers. Elsewhere it changed nothing (intel, orebro, acapulco: 4-6, 12 and 25-26
-            far candidates per run, none accepted) or within the seeds' spread (fhw) and
-            cost time (acapulco +10 %), so it is off until a consistency check among the
-            loops can use it.
+            there with 10 m gave 3.186 m against 3.188 m (282 loops against 271): the
+            robust pose graph takes the new loops' 6 m corrections for outliers, and 34
+            of its loops are more than 1 m off (aliased places along the corridors).
+            Elsewhere it changed nothing (intel, orebro, acapulco: 4-6, 12 and 25-26 far
+            candidates per run, none accepted) or within the seeds' spread (fhw), and it
+            cost time (acapulco +10 %), so it is off.
         wide_cell_m, wide_step_yaw_rad, wide_exclude_m: see ``wide_search_xy_m``.
         wide_drift_per_m: the drift bound: a wide-search correction may be at most this
             times the distance travelled between the two scans along the estimate (m/m).

@@ -98,6 +98,9 @@ class IcpSlamResult:
         registered: ``[N]`` bool, ``True`` where the scan-to-submap registration was
             accepted (row 0, the anchor, is ``True``); ``False`` rows kept the odometry
             increment.
+        isam_restarts: how often an iSAM2 update failed (GTSAM's indeterminate-system
+            error) and every factor so far was solved in batch (Levenberg-Marquardt)
+            instead, iSAM2 restarted from that solution.
     """
 
     poses: np.ndarray
@@ -106,6 +109,7 @@ class IcpSlamResult:
     seconds_front_end: float
     seconds_back_end: float
     registered: np.ndarray
+    isam_restarts: int = 0
 
 
 # --- SE(2) helpers (NumPy) ---------------------------------------------------------------
@@ -283,6 +287,26 @@ def _scan_points(ranges: np.ndarray, az: np.ndarray, max_range_m: float, cap: fl
 # --- the pipeline ------------------------------------------------------------------------
 
 
+def _pose2_values(gtsam, poses: np.ndarray):
+    """``gtsam.Values`` holding ``Pose2`` ``k`` = row ``k`` of ``poses`` ``[K, 3]``."""
+    values = gtsam.Values()
+    for k, p in enumerate(poses):
+        values.insert(k, gtsam.Pose2(*p))
+    return values
+
+
+def _batch_restart(gtsam, graph, poses: np.ndarray):
+    """Solve ``graph`` (every factor so far) with Levenberg-Marquardt from ``poses``
+    ``[K, 3]``, and a new iSAM2 holding the graph at that solution: ``(isam, estimate)``."""
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(100)
+    solved = gtsam.LevenbergMarquardtOptimizer(graph, _pose2_values(gtsam, poses), params)
+    current = solved.optimize()
+    isam = gtsam.ISAM2(gtsam.ISAM2Params())
+    isam.update(graph, current)
+    return isam, isam.calculateEstimate()
+
+
 def icp_pose_graph_slam(
     ranges_m: np.ndarray,
     azimuths_rad: np.ndarray,
@@ -364,6 +388,7 @@ def icp_pose_graph_slam(
     est = np.empty((n, 3))  # current best estimate (chain corrected by the optimised graph)
     est[0] = odo[0]
     loops: list[tuple[int, int]] = []
+    restarts = 0
 
     tic = time.perf_counter()
     isam = gtsam.ISAM2(gtsam.ISAM2Params())
@@ -470,17 +495,29 @@ def icp_pose_graph_slam(
                 new_graph.add(factor)
                 full_graph.add(factor)
                 loops.append((k, j))
-            isam.update(new_graph, new_values)
-            isam.update()
+            try:
+                isam.update(new_graph, new_values)
+                isam.update()
+                current = isam.calculateEstimate()
+            except RuntimeError:
+                # iSAM2's partial refactorisation can fail on a loop far from the estimate
+                # (freiburg-campus, drift seed 0, scan 1576): every factor so far in batch
+                # (damped), and iSAM2 again from that solution
+                isam, current = _batch_restart(gtsam, full_graph, est[: k + 1])
+                restarts += 1
             new_graph = gtsam.NonlinearFactorGraph()
             new_values = gtsam.Values()
-            est[: k + 1] = gtsam.utilities.extractPose2(isam.calculateEstimate())
+            est[: k + 1] = gtsam.utilities.extractPose2(current)
             t_back += time.perf_counter() - tic
 
     tic = time.perf_counter()
-    if new_values.size() or new_graph.size():
-        isam.update(new_graph, new_values)
     initial = isam.calculateEstimate()
+    if new_values.size() or new_graph.size():
+        try:
+            isam.update(new_graph, new_values)
+            initial = isam.calculateEstimate()
+        except RuntimeError:
+            initial = _pose2_values(gtsam, est)
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(100)
     result = gtsam.LevenbergMarquardtOptimizer(full_graph, initial, params).optimize()
@@ -496,4 +533,5 @@ def icp_pose_graph_slam(
         seconds_front_end=float(t_front),
         seconds_back_end=float(t_back),
         registered=registered,
+        isam_restarts=restarts,
     )

@@ -511,13 +511,13 @@ def icp_pose_graph_slam(
             t_back += time.perf_counter() - tic
 
     tic = time.perf_counter()
-    initial = isam.calculateEstimate()
     if new_values.size() or new_graph.size():
         try:
             isam.update(new_graph, new_values)
-            initial = isam.calculateEstimate()
-        except RuntimeError:
-            initial = _pose2_values(gtsam, est)
+        except RuntimeError:  # as above; the batch solve below starts from the estimate
+            isam = None
+            restarts += 1
+    initial = _pose2_values(gtsam, est) if isam is None else isam.calculateEstimate()
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(100)
     result = gtsam.LevenbergMarquardtOptimizer(full_graph, initial, params).optimize()

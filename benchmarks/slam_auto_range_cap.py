@@ -16,41 +16,32 @@ Usage: ``python benchmarks/slam_auto_range_cap.py [--logs acapulco freiburg-101 
 
 from __future__ import annotations
 
-import argparse
-
 import numpy as np
-from _harness import RESULTS, machine_info, write_json
-from slam import _scan_rate, log_inputs  # benchmarks/slam.py
-from slam_range_cap import time_front_ends
+from _harness import RESULTS
+from slam_range_cap import compare_front_ends
 
 from lidarjax import slam
 
 OUT = RESULTS / "slam_auto_range_cap.json"
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--logs", nargs="+", default=["acapulco", "freiburg-101", "intel"])
-    ap.add_argument("--scans", type=int, default=150)
-    args = ap.parse_args()
-    report = {"machine": machine_info(), "scans": args.scans, "logs": {}}
-    for name in args.logs:
-        log, n, ranges, az, odo = log_inputs(name, args.scans)
-        cap = slam.auto_range_cap(
-            np.minimum(log.ranges_m, log.max_range_m), float(log.usable_range_m)
-        )
-        rate = _scan_rate(log.timestamps_s[:n])
-        row: dict = {"n_scans": n, "scan_rate_hz": rate, "auto_range_cap_m": cap}
-        configs = {
-            "cap_20_m": slam.FrontEndConfig(),
-            "auto": slam.FrontEndConfig().with_range_cap(cap),
-        }
-        row.update(time_front_ends(ranges, az, odo, configs, rate))
-        row["ratio_auto_over_20"] = row["auto"]["scans_per_s"] / row["cap_20_m"]["scans_per_s"]
-        report["logs"][name] = row
-        print(name, row, flush=True)
-    write_json(OUT, report)
-    print("wrote", OUT)
+def _configs(log):
+    cap = slam.auto_range_cap(np.minimum(log.ranges_m, log.max_range_m), float(log.usable_range_m))
+    configs = {
+        "cap_20_m": slam.FrontEndConfig(),
+        "auto": slam.FrontEndConfig().with_range_cap(cap),
+    }
+    return configs, {"auto_range_cap_m": cap}
+
+
+def main(argv=None) -> None:
+    compare_front_ends(
+        argv,
+        OUT,
+        ["acapulco", "freiburg-101", "intel"],
+        _configs,
+        ("ratio_auto_over_20", "auto", "cap_20_m"),
+    )
 
 
 if __name__ == "__main__":

@@ -35,26 +35,42 @@ def time_front_ends(ranges, az, odo, configs: dict, rate) -> dict:
     return out
 
 
-def main() -> None:
+def compare_front_ends(argv, out, default_logs, configs_of, ratio: tuple[str, str, str]):
+    """The range-cap benchmarks' run: for each log of ``--logs`` (default
+    ``default_logs``), its first ``--scans`` scans timed under ``configs_of(log)`` (a
+    ``(configs, extra record fields)`` pair; :func:`time_front_ends`), and ``ratio =
+    (key, numerator, denominator)`` of their scans/s; the report is written to ``out``."""
     ap = argparse.ArgumentParser()
-    ap.add_argument("--logs", nargs="+", default=["intel", "fhw", "orebro"])
+    ap.add_argument("--logs", nargs="+", default=default_logs)
     ap.add_argument("--scans", type=int, default=150)
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     report = {"machine": machine_info(), "scans": args.scans, "logs": {}}
     for name in args.logs:
         log, n, ranges, az, odo = log_inputs(name, args.scans)
         rate = _scan_rate(log.timestamps_s[:n])
-        row: dict = {"n_scans": n, "scan_rate_hz": rate}
-        configs = {
-            "cap_10_m": slam.FrontEndConfig(range_cap_m=10.0, window_m=12.0, n_nodes=256),
-            "cap_20_m": slam.FrontEndConfig(),
-        }
+        configs, extra = configs_of(log)
+        row: dict = {"n_scans": n, "scan_rate_hz": rate, **extra}
         row.update(time_front_ends(ranges, az, odo, configs, rate))
-        row["ratio_20_over_10"] = row["cap_20_m"]["scans_per_s"] / row["cap_10_m"]["scans_per_s"]
+        key, num, den = ratio
+        row[key] = row[num]["scans_per_s"] / row[den]["scans_per_s"]
         report["logs"][name] = row
         print(name, row, flush=True)
-    write_json(OUT, report)
-    print("wrote", OUT)
+    write_json(out, report)
+    print("wrote", out)
+
+
+def main(argv=None) -> None:
+    configs = {
+        "cap_10_m": slam.FrontEndConfig(range_cap_m=10.0, window_m=12.0, n_nodes=256),
+        "cap_20_m": slam.FrontEndConfig(),
+    }
+    compare_front_ends(
+        argv,
+        OUT,
+        ["intel", "fhw", "orebro"],
+        lambda log: (configs, {}),
+        ("ratio_20_over_10", "cap_20_m", "cap_10_m"),
+    )
 
 
 if __name__ == "__main__":

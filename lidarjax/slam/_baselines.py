@@ -295,13 +295,18 @@ def _pose2_values(gtsam, poses: np.ndarray):
     return values
 
 
+def _levenberg_marquardt(gtsam, graph, initial):
+    """``graph`` solved by GTSAM's Levenberg-Marquardt (at most 100 iterations) from the
+    ``gtsam.Values`` ``initial``."""
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(100)
+    return gtsam.LevenbergMarquardtOptimizer(graph, initial, params).optimize()
+
+
 def _batch_restart(gtsam, graph, poses: np.ndarray):
     """Solve ``graph`` (every factor so far) with Levenberg-Marquardt from ``poses``
     ``[K, 3]``, and a new iSAM2 holding the graph at that solution: ``(isam, estimate)``."""
-    params = gtsam.LevenbergMarquardtParams()
-    params.setMaxIterations(100)
-    solved = gtsam.LevenbergMarquardtOptimizer(graph, _pose2_values(gtsam, poses), params)
-    current = solved.optimize()
+    current = _levenberg_marquardt(gtsam, graph, _pose2_values(gtsam, poses))
     isam = gtsam.ISAM2(gtsam.ISAM2Params())
     isam.update(graph, current)
     return isam, isam.calculateEstimate()
@@ -518,9 +523,7 @@ def icp_pose_graph_slam(
             isam = None
             restarts += 1
     initial = _pose2_values(gtsam, est) if isam is None else isam.calculateEstimate()
-    params = gtsam.LevenbergMarquardtParams()
-    params.setMaxIterations(100)
-    result = gtsam.LevenbergMarquardtOptimizer(full_graph, initial, params).optimize()
+    result = _levenberg_marquardt(gtsam, full_graph, initial)
     poses = np.asarray(gtsam.utilities.extractPose2(result), np.float64).reshape(n, 3)
     poses[:, 2] = _wrap(poses[:, 2])
     t_back += time.perf_counter() - tic

@@ -44,6 +44,20 @@ Several drift seeds (``seeds=[0,1,2,3,4,5]``) run every log and variant once per
 ``results.md`` ends with that summary. Round-off and the drift seed move single runs by
 as much as the systems differ (docs/results/slam.md), so rank systems over several seeds.
 
+A variant that raises (an ``Exception``; a ``KeyboardInterrupt`` still stops the run) does
+not stop the others: it is recorded under the log's ``failed`` (``results.json``:
+``logs.<log>.failed.<variant> = {"error": "<type>: <message>", "traceback": "..."}``, in
+each seed's ``logs`` where several seeds run; ``{}`` when none failed), a line on stderr
+names the log, seed, variant and error, and the other variants and logs run and are
+scored and written as usual. The shared decay-rate front end (with its loops and pose
+graph) is one unit: if it raises, every decay-rate variant fails with its error; each
+back end, ``reference_back_end``, ``endpoint``, ``icp_gtsam`` and the scoring of each
+estimate are units of their own. ``results.md`` has a row per failed variant (its
+error's first line, no scores); the seed summary lists ``failed`` for its seeds and
+computes mean, median and worst over the seeds that succeeded (``n_succeeded``; ``None``
+where none did). After everything is written, the run exits with a non-zero status
+(``SystemExit``) listing the failures.
+
 Writes ``results.json``, ``results.md``, the trajectories in TUM format
 (``<log>_<variant>.tum`` and ``<log>_ground_truth.tum``; the timestamps are scan indices,
 since some logs' are constant or not monotone), ``trajectories.png`` (map and
@@ -55,7 +69,9 @@ logs=[intel] max_scans=120``.
 from __future__ import annotations
 
 import dataclasses
+import sys
 import time
+import traceback
 
 import hydra
 import matplotlib
@@ -168,10 +184,24 @@ def _error_budget(base, odo, gt, scfg) -> dict:
     }
 
 
+def _failure(name, seed, variants, e) -> dict:
+    """The record of ``variants`` failed with ``e`` (call it in the ``except`` block: it
+    keeps the traceback), after one line on stderr naming them."""
+    error = f"{type(e).__name__}: {e}"
+    print(
+        f"slam: {name}, seed {seed}: {', '.join(variants)} failed: {error.splitlines()[0]}",
+        file=sys.stderr,
+        flush=True,
+    )
+    return {"error": error, "traceback": traceback.format_exc()}
+
+
 def _run_log(cfg, name, seed, out, front, loops, back, multi):
     """Every variant on one log from the drift seed's odometry: ``(results of the log,
     the figures' arguments)``. Writes the TUM files
-    ``<log>_<variant>.tum`` (``<log>_<variant>_seed<seed>.tum`` where several seeds run)."""
+    ``<log>_<variant>.tum`` (``<log>_<variant>_seed<seed>.tum`` where several seeds run).
+    A variant that raises an ``Exception`` is recorded in the results' ``failed`` (module
+    docstring) and the others go on."""
     o = cfg.odometry
     log = load_carmen(fetch(name), azimuth_layout=cfg.azimuth_layout)
     n = log.n_scans if cfg.max_scans is None else min(cfg.max_scans, log.n_scans)
@@ -225,6 +255,7 @@ def _run_log(cfg, name, seed, out, front, loops, back, multi):
     rate = _scan_rate(log.timestamps_s[:n])
     est: dict[str, np.ndarray] = {"odometry": odo}
     info: dict[str, dict] = {"odometry": {}}
+    failed: dict[str, dict] = {}  # variant -> {"error", "traceback"}
     want = set(cfg.variants)
     edges = np.stack([np.arange(n - 1), np.arange(1, n)], 1)
     inc = slam._front_end.between_np(odo[:-1], odo[1:])
@@ -245,71 +276,94 @@ def _run_log(cfg, name, seed, out, front, loops, back, multi):
     )
     if dr:
         # the front end, loops and pose graph once; each back end from the pose graph
-        base = slam.run_slam(ranges, az, odo, scfg, progress=True)
-        fe_rate = n / base.seconds["front_end"]
-        common = {
-            "front_end_scans_per_s": fe_rate,
-            "front_end_rtf": None if rate is None else fe_rate / rate,
-            "n_loops": int(len(base.loops.edges)),
-            "n_revisits": int(len(base.revisits.edges)),
-            "seconds_front_end": base.seconds["front_end"],
-            "seconds_loops": base.seconds["loops"],
-            "seconds_pose_graph": base.seconds["pose_graph"],
-            "front_end_ate_rmse_m": absolute_trajectory_error(base.front_end_poses, gt).rmse_m,
-            "error_budget": _error_budget(base, odo, gt, scfg),
-        }
+        try:
+            base = slam.run_slam(ranges, az, odo, scfg, progress=True)
+            fe_rate = n / base.seconds["front_end"]
+            common = {
+                "front_end_scans_per_s": fe_rate,
+                "front_end_rtf": None if rate is None else fe_rate / rate,
+                "n_loops": int(len(base.loops.edges)),
+                "n_revisits": int(len(base.revisits.edges)),
+                "seconds_front_end": base.seconds["front_end"],
+                "seconds_loops": base.seconds["loops"],
+                "seconds_pose_graph": base.seconds["pose_graph"],
+                "front_end_ate_rmse_m": absolute_trajectory_error(base.front_end_poses, gt).rmse_m,
+                "error_budget": _error_budget(base, odo, gt, scfg),
+            }
+        except Exception as e:  # every decay-rate variant needs it
+            failed.update(dict.fromkeys(dr, _failure(name, seed, dr, e)))
+            dr = []
         for v in dr:
             t = time.perf_counter()
-            if v == "decay_rate_pose_graph":
-                est[v], extra = base.pose_graph_poses, {}
-            else:
-                f = slam.optimize_joint if v.endswith("joint") else slam.optimize_alternating
-                b = f(base.pose_graph_poses, az, ranges, edges, inc, sig, back)
-                est[v] = b.poses
-                extra = {
-                    "seconds_back_end": b.seconds,
-                    "back_end_seconds_per_iteration": b.seconds_per_iteration,
-                    "objective_nats": b.objective,
-                }
+            try:
+                if v == "decay_rate_pose_graph":
+                    poses, extra = base.pose_graph_poses, {}
+                else:
+                    f = slam.optimize_joint if v.endswith("joint") else slam.optimize_alternating
+                    b = f(base.pose_graph_poses, az, ranges, edges, inc, sig, back)
+                    poses = b.poses
+                    extra = {
+                        "seconds_back_end": b.seconds,
+                        "back_end_seconds_per_iteration": b.seconds_per_iteration,
+                        "objective_nats": b.objective,
+                    }
+            except Exception as e:
+                failed[v] = _failure(name, seed, [v], e)
+                continue
+            est[v] = poses
             info[v] = {**common, **extra, "seconds_variant": time.perf_counter() - t}
     if "reference_back_end" in want:
         t = time.perf_counter()
-        b = slam.optimize_alternating(gt, az, ranges, edges, inc, sig, back)
-        est["reference_back_end"] = b.poses
-        info["reference_back_end"] = {
-            "seconds_back_end": b.seconds,
-            "back_end_seconds_per_iteration": b.seconds_per_iteration,
-            "objective_nats": b.objective,
-            "seconds_variant": time.perf_counter() - t,
-        }
+        try:
+            b = slam.optimize_alternating(gt, az, ranges, edges, inc, sig, back)
+            info["reference_back_end"] = {
+                "seconds_back_end": b.seconds,
+                "back_end_seconds_per_iteration": b.seconds_per_iteration,
+                "objective_nats": b.objective,
+                "seconds_variant": time.perf_counter() - t,
+            }
+            est["reference_back_end"] = b.poses  # last: only a complete variant is scored
+        except Exception as e:
+            failed["reference_back_end"] = _failure(name, seed, ["reference_back_end"], e)
     if "endpoint" in want:
         # the endpoint model has no free-space term: its map keeps every ray's free
         # length whatever grazing_cells says (slam.grid_map)
         ep_front = dataclasses.replace(front, model="endpoint")
-        ep = slam.run_slam(
-            ranges, az, odo, dataclasses.replace(scfg, front=ep_front), progress=True
-        )
-        est["endpoint"] = ep.poses
-        info["endpoint"] = {
-            "n_loops": int(len(ep.loops.edges)),
-            "n_revisits": int(len(ep.revisits.edges)),
-            "front_end_scans_per_s": n / ep.seconds["front_end"],
-            "seconds": sum(ep.seconds.values()),
-        }
+        try:
+            ep = slam.run_slam(
+                ranges, az, odo, dataclasses.replace(scfg, front=ep_front), progress=True
+            )
+            info["endpoint"] = {
+                "n_loops": int(len(ep.loops.edges)),
+                "n_revisits": int(len(ep.revisits.edges)),
+                "front_end_scans_per_s": n / ep.seconds["front_end"],
+                "seconds": sum(ep.seconds.values()),
+            }
+            est["endpoint"] = ep.poses
+        except Exception as e:
+            failed["endpoint"] = _failure(name, seed, ["endpoint"], e)
     if "icp_gtsam" in want:
         t = time.perf_counter()
-        ic = slam.icp_pose_graph_slam(ranges, az, odo, max_range_m=usable)
-        est["icp_gtsam"] = ic.poses
-        info["icp_gtsam"] = {"n_loops": int(len(ic.loops)), "seconds": time.perf_counter() - t}
+        try:
+            ic = slam.icp_pose_graph_slam(ranges, az, odo, max_range_m=usable)
+            info["icp_gtsam"] = {"n_loops": int(len(ic.loops)), "seconds": time.perf_counter() - t}
+            est["icp_gtsam"] = ic.poses
+        except Exception as e:
+            failed["icp_gtsam"] = _failure(name, seed, ["icp_gtsam"], e)
     per = {}
     traj = {}
     tag = f"_seed{seed}" if multi else ""
     write_tum(out / f"{name}_ground_truth.tum", np.arange(n, dtype=float), gt)
     for v, p in est.items():
-        s = _scores(p, gt, ranges, az, spec, gt_map, cfg, back)
+        try:
+            s = _scores(p, gt, ranges, az, spec, gt_map, cfg, back)
+            aligned = absolute_trajectory_error(p, gt).aligned
+        except Exception as e:  # the estimate is written all the same
+            failed[v] = _failure(name, seed, [v], e)
+        else:
+            per[v] = {**{k: x for k, x in s.items() if k != "errors_m"}, **info[v]}
+            traj[(name, v)] = (aligned, s["errors_m"])
         write_tum(out / f"{name}_{v}{tag}.tum", np.arange(n, dtype=float), p)
-        per[v] = {**{k: x for k, x in s.items() if k != "errors_m"}, **info[v]}
-        traj[(name, v)] = (absolute_trajectory_error(p, gt).aligned, s["errors_m"])
     result = {
         "n_scans": n,
         "range_cap_m": front.range_cap_m,
@@ -317,6 +371,7 @@ def _run_log(cfg, name, seed, out, front, loops, back, multi):
         "resimulated": resim,
         "scan_rate_hz": rate,
         "variants": per,
+        "failed": failed,
         "reference_consistency": _consistency(gt, ranges, az, back, cfg.loops.min_separation),
     }
     return result, (gt, gt_map, spec, est, traj)
@@ -356,7 +411,8 @@ def main(cfg: DictConfig) -> None:
     multi = len(seeds) > 1
     results: dict = {"run_info": run_info(), "seeds": seeds, "logs": {}}
     rows = []
-    ate: dict = {}  # (log, variant) -> ATE RMSE per seed
+    ate: dict = {}  # (log, variant) -> ATE RMSE per seed (None: failed)
+    failures = []  # one line per failed variant run
     for seed in seeds:
         logs = results["logs"] if not multi else {}
         if multi:
@@ -367,22 +423,17 @@ def main(cfg: DictConfig) -> None:
             for v, r in per["variants"].items():
                 rows.append((name, seed, v, r))
                 ate.setdefault((name, v), []).append(r["ate_rmse_m"])
+            for v, f in per["failed"].items():
+                rows.append((name, seed, v, f))
+                ate.setdefault((name, v), []).append(None)
+                failures.append(f"{name}, seed {seed}: {v}: {f['error'].splitlines()[0]}")
             rows.append((name, seed, "reference (corrected poses)", per["reference_consistency"]))
             write_results(out, results=results, partial=True)
             if name == cfg.figure_log and seed == seeds[0]:
                 _figures(out, name, *figure)
     if multi:
         results["seed_summary"] = {
-            name: {
-                v: {
-                    "ate_rmse_m": a,
-                    "mean_m": float(np.mean(a)),
-                    "median_m": float(np.median(a)),
-                    "worst_m": float(np.max(a)),
-                }
-                for (n2, v), a in ate.items()
-                if n2 == name
-            }
+            name: {v: _seed_summary(a) for (n2, v), a in ate.items() if n2 == name}
             for name in cfg.logs
         }
     md = [
@@ -393,6 +444,10 @@ def main(cfg: DictConfig) -> None:
         "|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for name, seed, v, r in rows:
+        if "error" in r:  # failed: no scores
+            error = r["error"].splitlines()[0].replace("|", "\\|")
+            md.append(f"| {name} | {seed} | {v} | failed: {error} |{' – |' * 7}")
+            continue
         rtf = r.get("front_end_rtf")
         rv = f" ({r['n_revisits']})" if "n_revisits" in r else ""
         fe = r.get("front_end_scans_per_s")
@@ -410,7 +465,11 @@ def main(cfg: DictConfig) -> None:
             f"{fmt(r['p_ref_rmse'])} | {r.get('n_loops', '–')}{rv} | "
             f"{fmt(fe, 2) if fe else '–'}{f' ({rtf:.1f})' if rtf else ''} | {cons}"
         )
-    budget = [(n, sd, r["error_budget"]) for n, sd, v, r in rows if v == "decay_rate_pose_graph"]
+    budget = [
+        (n, sd, r["error_budget"])
+        for n, sd, v, r in rows
+        if v == "decay_rate_pose_graph" and "error_budget" in r
+    ]
     if budget:
         md += [
             "",
@@ -441,7 +500,9 @@ def main(cfg: DictConfig) -> None:
         ]
         for name, per_v in results["seed_summary"].items():
             for v, a in per_v.items():
-                each = " / ".join(fmt(x) for x in a["ate_rmse_m"])
+                each = " / ".join("failed" if x is None else fmt(x) for x in a["ate_rmse_m"])
+                if a["n_succeeded"] < len(seeds):
+                    each += f" ({a['n_succeeded']} of {len(seeds)} seeds succeeded)"
                 md.append(
                     f"| {name} | {v} | {each} | {fmt(a['mean_m'])} | {fmt(a['median_m'])} "
                     f"| {fmt(a['worst_m'])} |"
@@ -453,6 +514,24 @@ def main(cfg: DictConfig) -> None:
         cfg=OmegaConf.create(OmegaConf.to_container(cfg, resolve=True)),
     )
     print("\n".join(md))
+    if failures:
+        raise SystemExit(
+            f"slam: {len(failures)} variant run(s) failed (results.json: each log's "
+            '"failed"):\n' + "\n".join(failures)
+        )
+
+
+def _seed_summary(a) -> dict:
+    """ATE RMSE per seed (``None`` where the variant failed), and its mean, median and
+    worst over the seeds that succeeded (``None`` if none did)."""
+    ok = [x for x in a if x is not None]
+    return {
+        "ate_rmse_m": a,
+        "n_succeeded": len(ok),
+        "mean_m": float(np.mean(ok)) if ok else None,
+        "median_m": float(np.median(ok)) if ok else None,
+        "worst_m": float(np.max(ok)) if ok else None,
+    }
 
 
 def _figures(out, name, gt, gt_map, spec, est, traj) -> None:
@@ -466,7 +545,8 @@ def _figures(out, name, gt, gt_map, spec, est, traj) -> None:
     ]
     ax.imshow(1 - np.exp(-rates.T), origin="lower", extent=extent, cmap="Greys", vmin=0, vmax=1)
     ax.plot(gt[:, 0], gt[:, 1], "k-", lw=1.5, label="corrected poses (ground truth)")
-    for v in est:
+    drawn = [v for v in est if (name, v) in traj]  # a failed variant has none
+    for v in drawn:
         a, _ = traj[(name, v)]
         ax.plot(a[:, 0], a[:, 1], lw=1, label=f"{v} (aligned)")
     ax.set_xlabel("x (m)")
@@ -476,7 +556,7 @@ def _figures(out, name, gt, gt_map, spec, est, traj) -> None:
     ax.legend(loc="best", fontsize=7)
     save_figure(fig, out / "trajectories.png")
     fig, ax = plt.subplots(figsize=(8, 4))
-    for v in est:
+    for v in drawn:
         _, e = traj[(name, v)]
         ax.plot(e, lw=1, label=v)
     ax.set_yscale("log")

@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -439,15 +441,15 @@ def test_poles_kitti_protocol_alone_at_two_resolutions(tmp_path):
     assert "| 0.1 |" in md and "lidarjax (simulated), 0.2 m" in md
 
 
-def _poles_module():
-    """experiments/poles.py loaded by path (benchmarks/poles.py has the same name)."""
+def _experiment_module(name: str):
+    """experiments/<name>.py loaded by path (benchmarks/ has modules of the same names)."""
     import importlib.util
 
     if str(ROOT / "experiments") not in sys.path:
         sys.path.insert(0, str(ROOT / "experiments"))  # for its ``from _schemas import``
 
     spec = importlib.util.spec_from_file_location(
-        "_experiment_poles", ROOT / "experiments" / "poles.py"
+        f"_experiment_{name}", ROOT / "experiments" / f"{name}.py"
     )
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
@@ -457,7 +459,7 @@ def _poles_module():
 def test_poles_relative_odometry():
     """The Table 12.2 odometry (the authors' KITTI script): ground-truth increments plus
     Gaussian noise of ``rel_sigma`` times each component, chained from the first pose."""
-    poles = _poles_module()
+    poles = _experiment_module("poles")
     rng = np.random.default_rng(0)
     n = 3000
     yaw = np.cumsum(rng.normal(0.0, 0.05, n))
@@ -666,3 +668,160 @@ def test_slam_seeds(tmp_path):
     assert "over the drift seeds [3, 1]" in md
     row = next(ln for ln in md.splitlines() if ln.startswith("| orebro | decay_rate_pose_graph |"))
     assert f"{summary['decay_rate_pose_graph']['median_m']:.3f}" in row
+
+
+def _slam_in_process(tmp_path, monkeypatch, *overrides):
+    """experiments/slam.py's ``main`` in this process on orebro's first 25 scans, writing
+    into ``tmp_path`` (no Hydra run: the config composed, the output folder patched);
+    returns the loaded module, for patching ``mod.slam`` first, and a ``run()``."""
+    from hydra import compose, initialize_config_dir
+
+    mod = _experiment_module("slam")
+    common = ["logs=[orebro]", "figure_log=orebro", "max_scans=25", "loops.min_separation=20"]
+    with initialize_config_dir(config_dir=str(ROOT / "configs"), version_base=None):
+        cfg = compose(config_name="slam", overrides=[*common, *overrides])
+    monkeypatch.setattr(mod, "output_dir", lambda: tmp_path)
+    return mod, lambda: mod.main(cfg)
+
+
+def test_slam_failed_variant_is_recorded_and_the_others_are_scored(tmp_path, monkeypatch, capsys):
+    """A variant that raises does not stop the run: the shared decay-rate front end fails
+    (once, for both decay-rate variants), the ICP baseline (a stub returning the odometry)
+    and the odometry are scored and written; the failures are in results.json, results.md
+    and on stderr, and the run exits non-zero after writing everything."""
+    mod, run = _slam_in_process(
+        tmp_path, monkeypatch, "variants=[decay_rate_joint,decay_rate_pose_graph,icp_gtsam]"
+    )
+    calls = []
+
+    def run_slam(*args, **kwargs):
+        calls.append(args)
+        raise RuntimeError("front end diverged | badly\nat scan 7")
+
+    monkeypatch.setattr(mod.slam, "run_slam", run_slam)
+    monkeypatch.setattr(
+        mod.slam,
+        "icp_pose_graph_slam",
+        lambda ranges, az, odo, **kw: SimpleNamespace(poses=np.array(odo), loops=[]),
+    )
+    with pytest.raises(SystemExit) as exit_info:
+        run()
+    assert exit_info.value.code not in (None, 0)
+    message = str(exit_info.value.code)
+    for v in ("decay_rate_joint", "decay_rate_pose_graph"):
+        assert f"orebro, seed 0: {v}: RuntimeError: front end diverged | badly" in message
+    assert len(calls) == 1  # the shared front end ran once
+    err = capsys.readouterr().err
+    assert (
+        "orebro, seed 0: decay_rate_joint, decay_rate_pose_graph failed: "
+        "RuntimeError: front end diverged | badly\n"
+    ) in err
+
+    res = json.loads((tmp_path / "results.json").read_text())
+    log = res["logs"]["orebro"]
+    assert set(log["variants"]) == {"odometry", "icp_gtsam"}
+    for r in log["variants"].values():
+        for k in ("ate_rmse_m", "p_ref_rmse", "log_likelihood_per_ray"):
+            assert np.isfinite(r[k]), (k, r[k])
+    # the stub's estimate is the odometry: scored like it
+    assert log["variants"]["icp_gtsam"]["ate_rmse_m"] == log["variants"]["odometry"]["ate_rmse_m"]
+    assert set(log["failed"]) == {"decay_rate_joint", "decay_rate_pose_graph"}
+    for f in log["failed"].values():
+        assert f["error"] == "RuntimeError: front end diverged | badly\nat scan 7"
+        assert "in run_slam" in f["traceback"] and "front end diverged" in f["traceback"]
+
+    md = (tmp_path / "results.md").read_text()
+    for v in ("decay_rate_joint", "decay_rate_pose_graph"):
+        row = next(ln for ln in md.splitlines() if ln.startswith(f"| orebro | 0 | {v} |"))
+        cells = [c.strip() for c in re.split(r"(?<!\\)\|", row.strip().strip("|"))]
+        # the error's first line, its "|" escaped (the row keeps its 11 cells), no scores
+        assert len(cells) == 11 and set(cells[4:]) == {"–"}, row
+        assert cells[3] == r"failed: RuntimeError: front end diverged \| badly", row
+    assert "What limits the decay-rate pose graph" not in md
+    for name in ("orebro_odometry.tum", "orebro_icp_gtsam.tum", "trajectories.png", "errors.png"):
+        assert (tmp_path / name).stat().st_size > 0, name
+    assert not (tmp_path / "orebro_decay_rate_joint.tum").exists()
+    assert (tmp_path / "config.yaml").is_file()
+
+
+def test_slam_seed_summary_skips_a_failed_seed(tmp_path, monkeypatch):
+    """Over two drift seeds, the ICP baseline (a stub returning the odometry) fails on the
+    second: the summary lists it as failed and takes mean / median / worst over the seed
+    that succeeded; the run still exits non-zero."""
+    mod, run = _slam_in_process(tmp_path, monkeypatch, "seeds=[0,1]", "variants=[icp_gtsam]")
+    calls = []
+
+    def icp(ranges, az, odo, **kw):
+        calls.append(1)
+        if len(calls) == 2:
+            raise ValueError("indeterminant system")
+        return SimpleNamespace(poses=np.array(odo), loops=[])
+
+    monkeypatch.setattr(mod.slam, "icp_pose_graph_slam", icp)
+    with pytest.raises(SystemExit) as exit_info:
+        run()
+    assert exit_info.value.code not in (None, 0)
+    assert "orebro, seed 1: icp_gtsam: ValueError: indeterminant system" in str(exit_info.value)
+    res = json.loads((tmp_path / "results.json").read_text())
+    assert res["by_seed"]["0"]["logs"]["orebro"]["failed"] == {}
+    assert set(res["by_seed"]["1"]["logs"]["orebro"]["failed"]) == {"icp_gtsam"}
+    s = res["seed_summary"]["orebro"]
+    odo = s["odometry"]["ate_rmse_m"]
+    assert s["odometry"]["n_succeeded"] == 2 and s["odometry"]["worst_m"] == max(odo)
+    assert s["icp_gtsam"]["ate_rmse_m"] == [odo[0], None]
+    assert s["icp_gtsam"]["n_succeeded"] == 1
+    for k in ("mean_m", "median_m", "worst_m"):
+        assert s["icp_gtsam"][k] == pytest.approx(odo[0], rel=1e-12)
+    md = (tmp_path / "results.md").read_text()
+    row = next(ln for ln in md.splitlines() if ln.startswith("| orebro | icp_gtsam |"))
+    assert f"{odo[0]:.3f} / failed (1 of 2 seeds succeeded)" in row, row
+    row = next(ln for ln in md.splitlines() if ln.startswith("| orebro | 1 | icp_gtsam |"))
+    assert "failed: ValueError: indeterminant system" in row
+
+
+def test_slam_failed_scoring_keeps_the_estimate(tmp_path, monkeypatch):
+    """A variant whose scoring raises is recorded as failed, its trajectory still written,
+    and the figures draw the variants that were scored."""
+    mod, run = _slam_in_process(tmp_path, monkeypatch, "variants=[icp_gtsam]")
+    icp_poses = []
+
+    def icp(ranges, az, odo, **kw):
+        icp_poses.append(np.array(odo))
+        return SimpleNamespace(poses=icp_poses[-1], loops=[])
+
+    scores = mod._scores
+
+    def failing_scores(est, *args):
+        if icp_poses and est is icp_poses[0]:
+            raise FloatingPointError("no finite error")
+        return scores(est, *args)
+
+    monkeypatch.setattr(mod.slam, "icp_pose_graph_slam", icp)
+    monkeypatch.setattr(mod, "_scores", failing_scores)
+    with pytest.raises(SystemExit, match="orebro, seed 0: icp_gtsam: FloatingPointError"):
+        run()
+    log = json.loads((tmp_path / "results.json").read_text())["logs"]["orebro"]
+    assert set(log["variants"]) == {"odometry"}
+    assert log["failed"]["icp_gtsam"]["error"] == "FloatingPointError: no finite error"
+    np.testing.assert_allclose(
+        np.loadtxt(tmp_path / "orebro_icp_gtsam.tum")[:, 1:3], icp_poses[0][:, :2]
+    )
+    for name in ("trajectories.png", "errors.png"):
+        assert (tmp_path / name).stat().st_size > 0, name
+
+
+def test_slam_keyboard_interrupt_stops_the_run(tmp_path, monkeypatch):
+    """Only ``Exception`` is caught: a KeyboardInterrupt in a variant ends the run."""
+    mod, run = _slam_in_process(tmp_path, monkeypatch, "variants=[icp_gtsam]")
+
+    calls = []
+
+    def icp(*args, **kwargs):
+        calls.append(1)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(mod.slam, "icp_pose_graph_slam", icp)
+    with pytest.raises(KeyboardInterrupt):
+        run()
+    assert calls == [1]
+    assert not (tmp_path / "results.md").exists()

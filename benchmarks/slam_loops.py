@@ -1,13 +1,17 @@
 """Loop search of decay-rate SLAM (issue #24): seconds of :func:`lidarjax.slam.find_loops`
-with the local search only and with the wide search's second chance (the default), timed
-in the same run on the same front-end trajectory.
+with the local search only, with the wide search's second chance (the default), and the
+default without its submap cache (``LoopConfig(submap_cache=0)``), timed in the same run
+on the same front-end trajectory.
 
 On the first ``--scans`` scans of each log with the experiment's drifting odometry
 (``configs/slam.yaml``), the decay-rate front end (:func:`lidarjax.slam.run_front_end`)
-gives the trajectory; :func:`~lidarjax.slam.find_loops` then runs once with
-``LoopConfig(wide_search_xy_m=0)`` and once with ``LoopConfig()``, each timed on its second
-call (the first compiles). Reported per log: seconds, candidates tried, loops accepted, and
-the ratio of the two times. The 1-minute load average is recorded before every timing.
+gives the trajectory; :func:`~lidarjax.slam.find_loops` then runs with
+``LoopConfig(wide_search_xy_m=0)``, ``LoopConfig()`` and ``LoopConfig(submap_cache=0)``,
+each timed on its second call (the first compiles). Reported per log: seconds, candidates
+tried, loops accepted, the ratio of the wide search's time to the local one's, the ratio
+of the default's time to the uncached one's, and whether the two found the same loops
+(edges and relative poses equal bit for bit). The 1-minute load average is recorded
+before every timing.
 Writes ``benchmarks/results/slam_loops.json``.
 
 Usage: ``python benchmarks/slam_loops.py [--logs intel fhw orebro] [--scans 300]``.
@@ -37,19 +41,21 @@ def main() -> None:
     configs = {
         "local_only": slam.LoopConfig(wide_search_xy_m=0.0),
         "with_wide_search": slam.LoopConfig(),
+        "without_submap_cache": slam.LoopConfig(submap_cache=0),
     }
     for name in args.logs:
         _, n, ranges, az, odo = log_inputs(name, args.scans)
         poses = slam.run_front_end(ranges, az, odo).poses
         path = float(np.hypot(*np.diff(poses[:, :2], axis=0).T).sum())
         row: dict = {"n_scans": n, "path_m": path}
+        found = {}
         for key, cfg in configs.items():
             # the first call compiles (the local match, the wide search); the second is
             # timed
             slam.find_loops(ranges, az, poses, cfg)
             load = os.getloadavg()[0]
             t = time.perf_counter()
-            loops = slam.find_loops(ranges, az, poses, cfg)
+            loops = found[key] = slam.find_loops(ranges, az, poses, cfg)
             row[key] = {
                 "load_1min_before": load,
                 "seconds": time.perf_counter() - t,
@@ -58,6 +64,13 @@ def main() -> None:
             }
         row["ratio_wide_over_local"] = (
             row["with_wide_search"]["seconds"] / row["local_only"]["seconds"]
+        )
+        row["ratio_cached_over_uncached"] = (
+            row["with_wide_search"]["seconds"] / row["without_submap_cache"]["seconds"]
+        )
+        a, b = found["with_wide_search"], found["without_submap_cache"]
+        row["cache_same_loops"] = bool(
+            np.array_equal(a.edges, b.edges) and np.array_equal(a.measurements, b.measurements)
         )
         report["logs"][name] = row
         print(name, row, flush=True)

@@ -1228,6 +1228,37 @@ def test_back_ends_reject_bad_inputs(change, name, optimize):
         optimize(*change(*_back_inputs()), BackEndConfig())
 
 
+@pytest.mark.slow  # ~60 s: the same search again, without the cache
+def test_find_loops_reuses_submaps_without_changing_a_loop(
+    office_revisit_scans, office_revisit_loops, monkeypatch
+):
+    # the submap cache (LoopConfig.submap_cache) only saves building a submap again: the
+    # loops found without it are the same, bit for bit, and fewer submaps are built with
+    # it (the cache is hit)
+    truth, ranges = office_revisit_scans
+    _, cached = office_revisit_loops  # the default cache
+    est = _office_revisit_estimate(truth)
+    builds = []
+    real = loops_module.grid_map
+
+    def counting(fcfg):
+        builds.append(1)
+        return real(fcfg)
+
+    monkeypatch.setattr(loops_module, "grid_map", counting)
+    cfg = LoopConfig(every=5, wide_search_xy_m=0.0)
+    with_cache = find_loops(ranges, AZ, est, cfg)
+    n_cached = len(builds)
+    builds.clear()
+    fresh = find_loops(ranges, AZ, est, dataclasses.replace(cfg, submap_cache=0))
+    assert len(builds) == fresh.n_tried  # one submap per candidate without the cache
+    assert n_cached < len(builds)
+    for loops in (with_cache, cached):
+        assert loops.n_tried == fresh.n_tried
+        np.testing.assert_array_equal(loops.edges, fresh.edges)
+        np.testing.assert_array_equal(loops.measurements, fresh.measurements)
+
+
 @pytest.mark.parametrize(
     ("kwargs", "name"),
     [
@@ -1262,6 +1293,9 @@ def test_back_ends_reject_bad_inputs(change, name, optimize):
         ({"min_mean_log_likelihood": True}, "min_mean_log_likelihood"),
         ({"min_mean_log_likelihood": "0.5"}, "min_mean_log_likelihood"),
         ({"final_from_search": 0}, "final_from_search"),
+        ({"submap_cache": -1}, "submap_cache"),
+        ({"submap_cache": True}, "submap_cache"),
+        ({"submap_cache": 2.0}, "submap_cache"),
     ],
 )
 def test_loop_config_rejects_bad_values(kwargs, name):

@@ -42,7 +42,7 @@ from lidarjax.slam import (
     score_scan,
     trajectory_log_likelihood,
 )
-from lidarjax.slam._front_end import between_np, compose_np
+from lidarjax.slam._front_end import FrontEndResult, between_np, compose_np
 from lidarjax.slam._loops import _wide_search
 from lidarjax.testing import finite_difference
 
@@ -801,6 +801,83 @@ def test_wide_search_keeps_the_models_threshold(monkeypatch, wide_ll):
     loops = find_loops(ranges, az, poses, cfg)
     assert loops.n_tried == 1 and len(calls) == 2
     np.testing.assert_array_equal(loops.edges, [[1, 59]] if wide_ll >= 0.5 else np.zeros((0, 2)))
+
+
+def _out_and_back(n=60, b=31):
+    """Out 15 m and back: scan 59's only candidate (every=29) is scan 1, at the same
+    place."""
+    k = np.arange(n)
+    poses = np.zeros((n, 3))
+    poses[:, 0] = np.where(k <= 30, 0.5 * k, 15.0 - 0.5 * (k - 30))
+    return np.full((n, b), 3.0), np.linspace(-np.pi / 2, np.pi / 2, b), poses
+
+
+def test_find_loops_computes_the_scene_level_once_and_takes_it_back(monkeypatch):
+    # a match below the model's threshold (0.5 nats) needs the log's level; the search
+    # returns the level it computed, and a later search given it does not compute it
+    # again (run_slam's second loop round, along the same front end); NaN (no sample had
+    # enough rays) keeps the model's threshold
+    ranges, az, poses = _out_and_back()
+    b = az.size
+
+    def fake_match(grid, azimuths, rng, pose0, cfg, **kwargs):
+        return MatchResult(np.zeros(3), b, 0.2, np.diag([1e6, 1e6, 1e6]), 100.0, 0.0, True)
+
+    calls = []
+
+    def fake_level(*args):
+        calls.append(1)
+        return -1.0
+
+    monkeypatch.setattr(loops_module, "match_scan", fake_match)
+    monkeypatch.setattr(loops_module, "scene_log_likelihood", fake_level)
+    cfg = LoopConfig(every=29, submap_half=0, wide_search_xy_m=0.0)
+    first = find_loops(ranges, az, poses, cfg)
+    assert len(calls) == 1 and first.scene_level == -1.0
+    np.testing.assert_array_equal(first.edges, [[1, 59]])  # 0.2 >= -1.0 - margin
+    again = find_loops(ranges, az, poses, cfg, scene_level=first.scene_level)
+    assert len(calls) == 1 and again.scene_level == -1.0
+    np.testing.assert_array_equal(again.edges, first.edges)
+    nan = find_loops(ranges, az, poses, cfg, scene_level=float("nan"))
+    assert len(calls) == 1 and np.isnan(nan.scene_level) and len(nan.edges) == 0
+    # a search whose matches all pass the model's threshold never computes it
+    monkeypatch.setattr(
+        loops_module,
+        "match_scan",
+        lambda *a, **k: MatchResult(np.zeros(3), b, 2.0, np.eye(3) * 1e6, 100.0, 0.0, True),
+    )
+    high = find_loops(ranges, az, poses, cfg)
+    assert len(calls) == 1 and high.scene_level is None and len(high.edges) == 1
+    for bad in (float("inf"), True, "1.0"):
+        with pytest.raises(ValueError, match="scene_level"):
+            find_loops(ranges, az, poses, cfg, scene_level=bad)
+
+
+def test_run_slam_passes_the_scene_level_to_the_next_loop_round(monkeypatch):
+    # the second round searches along the pose graph but scores the level along the
+    # front end, like the first: it gets the first round's level
+    import lidarjax.slam._pipeline as pipeline
+
+    ranges, az, poses = _out_and_back()
+    seen = []
+
+    def fake_find_loops(rng, azimuths, searched, cfg, fcfg, **kwargs):
+        seen.append(kwargs.get("scene_level", "not given"))
+        if len(seen) == 1:  # one loop, so that a second round runs
+            e = np.array([[1, 59]])
+            return Loops(e, between_np(searched[e[:, 0]], searched[e[:, 1]]), 1, -1.25)
+        return Loops(np.zeros((0, 2), np.int64), np.zeros((0, 3)), 0, -1.25)
+
+    def fake_front_end(rng, azimuths, odo, cfg, progress=False):
+        n = rng.shape[0]
+        return FrontEndResult(odo, np.zeros(n), 0.0, np.zeros(n), None)
+
+    monkeypatch.setattr(pipeline, "find_loops", fake_find_loops)
+    monkeypatch.setattr(pipeline, "run_front_end", fake_front_end)
+    cfg = SlamConfig(back_end="none", revisits=False, loop_rounds=2)
+    r = run_slam(ranges, az, poses, cfg)
+    assert seen == ["not given", -1.25]
+    assert r.loops.scene_level == -1.25 and len(r.loops.edges) == 1
 
 
 @pytest.mark.slow  # ~30 s: twenty submaps, twice

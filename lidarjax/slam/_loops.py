@@ -287,11 +287,17 @@ class Loops:
         edges: ``[L 2]`` int pairs ``(j, i)``, ``j < i``.
         measurements: ``[L 3]`` relative poses ``pose_j^-1 pose_i`` ``(x m, y m, yaw rad)``.
         n_tried: candidate pairs matched.
+        scene_level: the log's level (:func:`scene_log_likelihood`, nats per used ray;
+            NaN where no sample had enough used rays) along the search's
+            ``level_poses``, if the search computed it or was given it; None otherwise.
+            A later search along the same ``level_poses`` takes it back
+            (:func:`find_loops`'s ``scene_level``) instead of computing it again.
     """
 
     edges: np.ndarray
     measurements: np.ndarray
     n_tried: int
+    scene_level: float | None = None
 
 
 def _starts(cfg: LoopConfig) -> np.ndarray:
@@ -497,13 +503,14 @@ class _Threshold:
     below the model's own threshold (the only case the level can change the test's
     outcome), and then once."""
 
-    def __init__(self, ranges_m, azimuths_rad, poses, cfg, front_cfg):
+    def __init__(self, ranges_m, azimuths_rad, poses, cfg, front_cfg, level=None):
         self.cfg = LoopConfig() if cfg is None else cfg
         self.fcfg = FrontEndConfig() if front_cfg is None else front_cfg
         self.scans = (ranges_m, azimuths_rad, poses)
         self.base = _min_mean_log_likelihood(self.cfg, self.fcfg)
         m = self.cfg.scene_margin
         self.margin = SCENE_MARGIN[self.fcfg.model] if m is None else m
+        self.level: float | None = level  # the log's level, once computed (or given)
         self._lowered: float | None = None
 
     def lowered(self) -> float:
@@ -511,9 +518,10 @@ class _Threshold:
         if self._lowered is None:
             self._lowered = self.base
             if self.margin is not None and self.cfg.scene_samples > 0:
-                level = scene_log_likelihood(*self.scans, self.cfg, self.fcfg)
-                if math.isfinite(level):
-                    self._lowered = min(self.base, level - self.margin)
+                if self.level is None:
+                    self.level = scene_log_likelihood(*self.scans, self.cfg, self.fcfg)
+                if math.isfinite(self.level):
+                    self._lowered = min(self.base, self.level - self.margin)
         return self._lowered
 
     def passes(self, mean_log_likelihood: float) -> bool:
@@ -631,6 +639,7 @@ def find_loops(
     known: np.ndarray | None = None,
     previous_poses: np.ndarray | None = None,
     level_poses: np.ndarray | None = None,
+    scene_level: float | None = None,
     progress: bool = False,
 ) -> Loops:
     """Search loop closures along an estimated trajectory (module docstring).
@@ -651,6 +660,9 @@ def find_loops(
             scans, which fit their neighbours less well (on fhw's front ends, drift seeds
             0-3, the level was 1.03-1.18 nats along the front end and 0.85-0.98 along the
             pose graph).
+        scene_level: the log's level along ``level_poses`` if already known (an earlier
+            search's :attr:`Loops.scene_level` along the same poses; NaN allowed): it is
+            not computed again (None: computed if a match needs it).
         progress: tqdm progress bar.
 
     Returns:
@@ -687,7 +699,13 @@ def find_loops(
     level_poses = np.asarray(level_poses, float)
     if level_poses.shape != poses.shape or not np.all(np.isfinite(level_poses)):
         raise ValueError(f"level_poses must be a finite [{n}, 3] array, got {level_poses.shape}")
-    threshold = _Threshold(rng, az, level_poses, cfg, fcfg)
+    if scene_level is not None and (
+        isinstance(scene_level, bool)
+        or not isinstance(scene_level, (int, float, np.floating))
+        or math.isinf(scene_level)
+    ):
+        raise ValueError(f"scene_level must be a finite number, NaN or None, got {scene_level!r}")
+    threshold = _Threshold(rng, az, level_poses, cfg, fcfg, scene_level)
     starts = _starts(cfg)
     searched = cfg.search_xy_m > 0 or cfg.search_yaw_rad > 0
     # distance travelled along the estimate (m), which bounds its drift
@@ -785,4 +803,5 @@ def find_loops(
                 # the estimate may have drifted beyond the local search
                 wide(grid, i, j, guess, cfg.wide_search_xy_m)
     e = np.asarray(edges, np.int64).reshape(-1, 2)
-    return Loops(e, np.asarray(meas, float).reshape(-1, 3), n_tried)
+    level = None if threshold.level is None else float(threshold.level)
+    return Loops(e, np.asarray(meas, float).reshape(-1, 3), n_tried, level)

@@ -302,6 +302,7 @@ def run_slam(
                 known=loops.edges,
                 previous_poses=searched,
                 level_poses=fe.poses,
+                scene_level=loops.scene_level,  # along fe.poses too: computed once
                 progress=progress,
             )
             searched = pg_poses
@@ -312,6 +313,7 @@ def run_slam(
                 np.concatenate([loops.edges, more.edges]),
                 np.concatenate([loops.measurements, more.measurements]),
                 loops.n_tried + more.n_tried,
+                more.scene_level,
             )
         t = time.perf_counter()
         pg = front_end_pose_graph(fe.poses, odo, loops, cfg, revisits)

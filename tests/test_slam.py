@@ -448,6 +448,25 @@ def test_grid_map_add_then_remove_gives_zeros():
     np.testing.assert_allclose(g.lengths, 0.0, atol=1e-12)
 
 
+@pytest.mark.parametrize("grazing_m", [0.0, 0.1])
+def test_grid_map_weights_scans_exactly(grazing_m):
+    # sign 1 and -1 add in place, any other sign scales a float64 copy: all three give
+    # the same sums (a scan added and removed leaves exact zeros; a weight 0.5 or 2
+    # scales the grid exactly)
+    az, rng = _square_scan()
+    pose = [0.31, -0.47, 0.3]
+    one = GridMap(0.1, 3.0, grazing_m=grazing_m)
+    one.add_scan(pose, az, rng)
+    assert one.hits.dtype == one.lengths.dtype == np.float64 and one.lengths.sum() > 0
+    for w in (0.5, 2.0):
+        g = GridMap(0.1, 3.0, grazing_m=grazing_m)
+        g.add_scan(pose, az, rng, sign=w)
+        np.testing.assert_array_equal(g.hits, w * one.hits)
+        np.testing.assert_array_equal(g.lengths, w * one.lengths)
+    one.add_scan(pose, az, rng, sign=-1.0)
+    assert not np.any(one.hits) and not np.any(one.lengths)
+
+
 def test_grid_map_grows_and_equals_one_big_grid():
     poses = np.array([[0.33, 0.21, 0.1], [25.17, -0.4, 1.2], [-3.2, 31.05, -2.0]])
     scans = [_square_scan(seed=s) for s in range(3)]

@@ -588,13 +588,22 @@ class GridMap:
         spec = GridSpec(lo * self.res, self.res, (self._n_local, self._n_local))
         rays = from_scan(se2(pose_xy_yaw), azimuths, ranges, 0.0, self.cap)
         st = accumulate(spec, rays)
-        hits, lengths = np.asarray(st.hits, dtype=float), np.asarray(st.lengths, dtype=float)
+        # the kernel's own dtypes (counts, the rays' float), widened exactly by the adds
+        hits, lengths = np.asarray(st.hits), np.asarray(st.lengths)
         if self.grazing_m > 0:
             lengths = self._grazing_free_lengths(spec, pose_xy_yaw, azimuths, ranges, lengths)
         i, j = (lo - self.lo).astype(int)
         n = self._n_local
-        self.hits[i : i + n, j : j + n] += sign * hits
-        self.lengths[i : i + n, j : j + n] += sign * lengths
+        cells = (slice(i, i + n), slice(j, j + n))
+        if sign == 1.0:  # in place, no temporaries (the same sums as below)
+            self.hits[cells] += hits
+            self.lengths[cells] += lengths
+        elif sign == -1.0:
+            self.hits[cells] -= hits
+            self.lengths[cells] -= lengths
+        else:
+            self.hits[cells] += sign * hits.astype(float)
+            self.lengths[cells] += sign * lengths.astype(float)
 
     def _grazing_free_lengths(self, spec, pose_xy_yaw, azimuths, ranges, plain) -> np.ndarray:
         """``[n n]`` lengths of one scan when each cut HIT ray's free length is ``[0, r -

@@ -55,7 +55,10 @@ back end, ``reference_back_end``, ``endpoint``, ``icp_gtsam`` and the scoring of
 estimate are units of their own. ``results.md`` has a row per failed variant (its
 error's first line, no scores); the seed summary lists ``failed`` for its seeds and
 computes mean, median and worst over the seeds that succeeded (``n_succeeded``; ``None``
-where none did). After everything is written, the run exits with a non-zero status
+where none did). A failure outside the variants (loading the log, re-simulating it, its
+reference grid, the reference's consistency) is recorded as ``failed.log`` and counts as
+a failure of every variant of that log for that seed; one in the figures as
+``failed.figures``. After everything is written, the run exits with a non-zero status
 (``SystemExit``) listing the failures.
 
 Writes ``results.json``, ``results.md``, the trajectories in TUM format
@@ -418,7 +421,17 @@ def main(cfg: DictConfig) -> None:
         if multi:
             results.setdefault("by_seed", {})[str(seed)] = {"logs": logs}
         for name in cfg.logs:
-            per, figure = _run_log(cfg, name, seed, out, front, loops, back, multi)
+            try:
+                per, figure = _run_log(cfg, name, seed, out, front, loops, back, multi)
+            except Exception as e:  # outside the variants: loading the log, its grids, ...
+                f = _failure(name, seed, ["the whole log"], e)
+                logs[name] = {"failed": {"log": f}}
+                rows.append((name, seed, "the whole log", f))
+                for v in dict.fromkeys(["odometry", *cfg.variants]):  # every variant failed
+                    ate.setdefault((name, v), []).append(None)
+                failures.append(f"{name}, seed {seed}: the whole log: {f['error'].splitlines()[0]}")
+                write_results(out, results=results, partial=True)
+                continue
             logs[name] = per
             for v, r in per["variants"].items():
                 rows.append((name, seed, v, r))
@@ -430,7 +443,13 @@ def main(cfg: DictConfig) -> None:
             rows.append((name, seed, "reference (corrected poses)", per["reference_consistency"]))
             write_results(out, results=results, partial=True)
             if name == cfg.figure_log and seed == seeds[0]:
-                _figures(out, name, *figure)
+                try:
+                    _figures(out, name, *figure)
+                except Exception as e:
+                    f = per["failed"]["figures"] = _failure(name, seed, ["figures"], e)
+                    rows.append((name, seed, "figures", f))
+                    failures.append(f"{name}, seed {seed}: figures: {f['error'].splitlines()[0]}")
+                    write_results(out, results=results, partial=True)
     if multi:
         results["seed_summary"] = {
             name: {v: _seed_summary(a) for (n2, v), a in ate.items() if n2 == name}

@@ -810,6 +810,71 @@ def test_slam_failed_scoring_keeps_the_estimate(tmp_path, monkeypatch):
         assert (tmp_path / name).stat().st_size > 0, name
 
 
+def test_slam_failed_log_is_recorded_and_the_next_seed_runs(tmp_path, monkeypatch, capsys):
+    """A failure outside the variants (here: reading the log, on the first seed) is
+    recorded for the whole log; every variant counts as failed for that seed, the next
+    seed runs and is scored, the seed summary stays aligned with the seeds, and the run
+    exits non-zero."""
+    mod, run = _slam_in_process(tmp_path, monkeypatch, "seeds=[0,1]", "variants=[icp_gtsam]")
+    monkeypatch.setattr(
+        mod.slam,
+        "icp_pose_graph_slam",
+        lambda ranges, az, odo, **kw: SimpleNamespace(poses=np.array(odo), loops=[]),
+    )
+    real, loads = mod.load_carmen, []
+
+    def load(*args, **kwargs):
+        loads.append(1)
+        if len(loads) == 1:
+            raise OSError("truncated log")
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(mod, "load_carmen", load)
+    with pytest.raises(SystemExit) as exit_info:
+        run()
+    message = str(exit_info.value.code)
+    assert "orebro, seed 0: the whole log: OSError: truncated log" in message
+    assert len(loads) == 2
+    assert "orebro, seed 0: the whole log failed: OSError: truncated log" in capsys.readouterr().err
+    res = json.loads((tmp_path / "results.json").read_text())
+    first = res["by_seed"]["0"]["logs"]["orebro"]
+    assert set(first) == {"failed"} and first["failed"]["log"]["error"] == "OSError: truncated log"
+    assert "in load" in first["failed"]["log"]["traceback"]
+    second = res["by_seed"]["1"]["logs"]["orebro"]
+    assert set(second["variants"]) == {"odometry", "icp_gtsam"} and second["failed"] == {}
+    s = res["seed_summary"]["orebro"]
+    for v in ("odometry", "icp_gtsam"):
+        assert s[v]["ate_rmse_m"][0] is None and s[v]["n_succeeded"] == 1
+        assert s[v]["ate_rmse_m"][1] == pytest.approx(second["variants"][v]["ate_rmse_m"])
+    md = (tmp_path / "results.md").read_text()
+    assert "| orebro | 0 | the whole log | failed: OSError: truncated log |" in md
+
+
+def test_slam_failed_figures_are_recorded(tmp_path, monkeypatch):
+    mod, run = _slam_in_process(tmp_path, monkeypatch, "variants=[icp_gtsam]")
+    monkeypatch.setattr(
+        mod.slam,
+        "icp_pose_graph_slam",
+        lambda ranges, az, odo, **kw: SimpleNamespace(poses=np.array(odo), loops=[]),
+    )
+
+    def figures(*args):
+        raise RuntimeError("no display")
+
+    monkeypatch.setattr(mod, "_figures", figures)
+    with pytest.raises(SystemExit) as exit_info:
+        run()
+    assert "orebro, seed 0: figures: RuntimeError: no display" in str(exit_info.value.code)
+    res = json.loads((tmp_path / "results.json").read_text())
+    log = res["logs"]["orebro"]
+    assert set(log["variants"]) == {"odometry", "icp_gtsam"}
+    assert set(log["failed"]) == {"figures"}
+    assert (
+        "| orebro | 0 | figures | failed: RuntimeError: no display |"
+        in (tmp_path / "results.md").read_text()
+    )
+
+
 def test_slam_keyboard_interrupt_stops_the_run(tmp_path, monkeypatch):
     """Only ``Exception`` is caught: a KeyboardInterrupt in a variant ends the run."""
     mod, run = _slam_in_process(tmp_path, monkeypatch, "variants=[icp_gtsam]")

@@ -416,6 +416,11 @@ def main(cfg: DictConfig) -> None:
     rows = []
     ate: dict = {}  # (log, variant) -> ATE RMSE per seed (None: failed)
     failures = []  # one line per failed variant run
+
+    def failed_row(name, seed, what, f):
+        rows.append((name, seed, what, f))
+        failures.append(f"{name}, seed {seed}: {what}: {f['error'].splitlines()[0]}")
+
     for seed in seeds:
         logs = results["logs"] if not multi else {}
         if multi:
@@ -426,10 +431,9 @@ def main(cfg: DictConfig) -> None:
             except Exception as e:  # outside the variants: loading the log, its grids, ...
                 f = _failure(name, seed, ["the whole log"], e)
                 logs[name] = {"failed": {"log": f}}
-                rows.append((name, seed, "the whole log", f))
+                failed_row(name, seed, "the whole log", f)
                 for v in dict.fromkeys(["odometry", *cfg.variants]):  # every variant failed
                     ate.setdefault((name, v), []).append(None)
-                failures.append(f"{name}, seed {seed}: the whole log: {f['error'].splitlines()[0]}")
                 write_results(out, results=results, partial=True)
                 continue
             logs[name] = per
@@ -437,9 +441,8 @@ def main(cfg: DictConfig) -> None:
                 rows.append((name, seed, v, r))
                 ate.setdefault((name, v), []).append(r["ate_rmse_m"])
             for v, f in per["failed"].items():
-                rows.append((name, seed, v, f))
+                failed_row(name, seed, v, f)
                 ate.setdefault((name, v), []).append(None)
-                failures.append(f"{name}, seed {seed}: {v}: {f['error'].splitlines()[0]}")
             rows.append((name, seed, "reference (corrected poses)", per["reference_consistency"]))
             write_results(out, results=results, partial=True)
             if name == cfg.figure_log and seed == seeds[0]:
@@ -447,8 +450,7 @@ def main(cfg: DictConfig) -> None:
                     _figures(out, name, *figure)
                 except Exception as e:
                     f = per["failed"]["figures"] = _failure(name, seed, ["figures"], e)
-                    rows.append((name, seed, "figures", f))
-                    failures.append(f"{name}, seed {seed}: figures: {f['error'].splitlines()[0]}")
+                    failed_row(name, seed, "figures", f)
                     write_results(out, results=results, partial=True)
     if multi:
         results["seed_summary"] = {

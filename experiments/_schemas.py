@@ -1202,6 +1202,8 @@ class SlamFrontEnd:
     blur_schedule_m: list[float] = _f(nonempty, each=nonnegative)
     backend: str = _f(one_of("auto", "native", "jax"))
     grazing_cells: float = _f(nonnegative)
+    prior_hits: float = _f(nonnegative)
+    prior_length_m: float = _f(nonnegative)
     dtype: str | None = _f(one_of("float32", "float64"))  # null: JAX's default
 
 

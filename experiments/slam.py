@@ -389,6 +389,8 @@ def main(cfg: DictConfig) -> None:
         blur_schedule_m=tuple(cfg.front_end.blur_schedule_m),
         backend=cfg.front_end.backend,
         grazing_cells=cfg.front_end.grazing_cells,
+        prior_hits=cfg.front_end.prior_hits,
+        prior_length_m=cfg.front_end.prior_length_m,
         dtype=cfg.front_end.dtype,
     )
     if cfg.front_end.range_cap_m is not None:  # else each log's own (_run_log)

@@ -222,6 +222,8 @@ VALUE_ERRORS = [
     ("slam", ["azimuth_layout=centred"], "azimuth_layout = 'centred'", "must be one of"),
     ("slam", ["front_end.backend=cuda"], "front_end.backend = 'cuda'", "must be one of"),
     ("slam", ["front_end.grazing_cells=-1"], "front_end.grazing_cells = -1", ">= 0"),
+    ("slam", ["front_end.prior_length_m=-0.5"], "front_end.prior_length_m = -0.5", ">= 0"),
+    ("slam", ["front_end.prior_hits=-1"], "front_end.prior_hits = -1", ">= 0"),
     (
         "slam",
         ["loops.min_mean_log_likelihood=inf"],

@@ -744,6 +744,28 @@ def test_slam_failed_variant_is_recorded_and_the_others_are_scored(tmp_path, mon
     assert (tmp_path / "config.yaml").is_file()
 
 
+def test_slam_front_end_rate_prior_reaches_the_front_end(tmp_path, monkeypatch):
+    """``front_end.prior_hits`` / ``front_end.prior_length_m`` are the run's
+    ``FrontEndConfig`` pseudo-counts (0 and 0 by default: the ML rates)."""
+    seen = []
+
+    def run_slam(ranges, az, odo, cfg, *args, **kwargs):
+        seen.append(cfg.front)
+        raise RuntimeError("stop here")
+
+    for overrides, want in (
+        ([], (0.0, 0.0)),
+        (["front_end.prior_hits=0.25", "front_end.prior_length_m=0.75"], (0.25, 0.75)),
+    ):
+        mod, run = _slam_in_process(
+            tmp_path, monkeypatch, "variants=[decay_rate_pose_graph]", *overrides
+        )
+        monkeypatch.setattr(mod.slam, "run_slam", run_slam)
+        with pytest.raises(SystemExit):
+            run()
+        assert (seen[-1].prior_hits, seen[-1].prior_length_m) == want
+
+
 def test_slam_seed_summary_skips_a_failed_seed(tmp_path, monkeypatch):
     """Over two drift seeds, the ICP baseline (a stub returning the odometry) fails on the
     second: the summary lists it as failed and takes mean / median / worst over the seed

@@ -90,7 +90,11 @@ def reference_match_errors(
     """Match scans against the map of the scans before them placed at reference poses,
     each started at (and with the front end's prior centred on) its own reference pose:
     the matcher's error with no drift and no error in the map's poses. Its mean is the
-    matcher's bias, which a front end turns into a scale error of the trajectory.
+    matcher's bias against a map at correct poses. A front end's map is built at its own
+    poses, so its increments can carry less of that bias (on intel, stop 60 of the
+    results: +11 mm here, under 1 mm per increment in the front end). One match per
+    matched scan and one map update per scan: intel's 910 scans with ``every=3`` take
+    about a minute on 2 cores.
 
     Args:
         ranges_m: ``[N B]`` readings (m); no-returns as the maximum reading.

@@ -85,9 +85,10 @@ def test_a_reference_pose_moved_off_shows_as_the_opposite_error(office):
     the scan's true pose, so the error (in the moved reference's frame) is about (-10, +6)
     cm; the sign convention (forward, left) and the frame are what this pins down. The
     match depends on where it starts by up to half a cell (measured 2.4 cm for a 3 cm
-    move: the last stage's local maxima), hence the tolerance."""
+    move: the last stage's local maxima), hence the tolerance. The endpoint model: the
+    convention does not depend on the model, and its matcher is compiled already."""
     truth, ranges = office
-    cfg = FrontEndConfig()
+    cfg = FrontEndConfig(model="endpoint")
     k = truth.shape[0] - 1
     moved = truth.copy()
     moved[k] = _moved(truth[k], (0.10, -0.06, 0.0))

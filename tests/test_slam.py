@@ -1233,6 +1233,8 @@ def test_run_slam_end_to_end(office_revisit_scans):
         ({"local_map_scans": -1}, "local_map_scans"),
         ({"local_map_scans": 2.0}, "local_map_scans"),
         ({"backend": "cuda"}, "backend"),
+        ({"prior_length_m": -0.1}, "prior_length_m"),
+        ({"prior_hits": 0.5}, "prior_hits .* needs prior_length_m > 0"),
     ],
 )
 def test_front_end_config_rejects_bad_values(kwargs, name):

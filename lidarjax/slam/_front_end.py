@@ -139,7 +139,10 @@ class FrontEndConfig:
             poses of the neighbouring scans (26 scans), the mean along-track error was
             -2.7 cm with no gap and -1.4 cm with 1.5 cells (median |error| 4.0 -> 3.0 cm).
         prior_hits, prior_length_m: pseudo-counts of the window's rates ``(H + a) / (R + b)``
-            (both 0: the ML rates ``H / R``, never-seen cells 0).
+            (both 0: the ML rates ``H / R``, never-seen cells 0; ``prior_hits > 0`` needs
+            ``prior_length_m > 0``). A length alone shrinks rates seen over short lengths,
+            such as the cell behind a wall's first one (results, stop 60), and lowers
+            every scan's log-likelihood, which the loop test's threshold is not set for.
         mask_unmapped: leave rays ending in never-traversed cells out of the objective.
         model: ``"decay_rate"`` (the default) or ``"endpoint"``: the likelihood-field
             baseline, ``log`` of the blurred hit indicator at the end points (no free-space
@@ -303,6 +306,11 @@ class FrontEndConfig:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
                 raise ValueError(f"{name} must be finite and >= 0, got {v!r}")
+        if self.prior_hits > 0 and self.prior_length_m == 0:
+            raise ValueError(
+                f"prior_hits ({self.prior_hits}) needs prior_length_m > 0: the rates "
+                "(H + prior_hits) / (R + prior_length_m) of never-seen cells would be infinite"
+            )
         for name in ("mask_unmapped", "final_from_search"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name} must be True or False, got {getattr(self, name)!r}")

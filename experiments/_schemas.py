@@ -1204,6 +1204,7 @@ class SlamFrontEnd:
     grazing_cells: float = _f(nonnegative)
     prior_hits: float = _f(nonnegative)
     prior_length_m: float = _f(nonnegative)
+    local_map_scans: int = _f(nonnegative)
     dtype: str | None = _f(one_of("float32", "float64"))  # null: JAX's default
 
 

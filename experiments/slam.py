@@ -391,6 +391,7 @@ def main(cfg: DictConfig) -> None:
         grazing_cells=cfg.front_end.grazing_cells,
         prior_hits=cfg.front_end.prior_hits,
         prior_length_m=cfg.front_end.prior_length_m,
+        local_map_scans=cfg.front_end.local_map_scans,
         dtype=cfg.front_end.dtype,
     )
     if cfg.front_end.range_cap_m is not None:  # else each log's own (_run_log)

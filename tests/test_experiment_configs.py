@@ -224,6 +224,7 @@ VALUE_ERRORS = [
     ("slam", ["front_end.grazing_cells=-1"], "front_end.grazing_cells = -1", ">= 0"),
     ("slam", ["front_end.prior_length_m=-0.5"], "front_end.prior_length_m = -0.5", ">= 0"),
     ("slam", ["front_end.prior_hits=-1"], "front_end.prior_hits = -1", ">= 0"),
+    ("slam", ["front_end.local_map_scans=-3"], "front_end.local_map_scans = -3", ">= 0"),
     (
         "slam",
         ["loops.min_mean_log_likelihood=inf"],

@@ -745,8 +745,9 @@ def test_slam_failed_variant_is_recorded_and_the_others_are_scored(tmp_path, mon
 
 
 def test_slam_front_end_rate_prior_reaches_the_front_end(tmp_path, monkeypatch):
-    """``front_end.prior_hits`` / ``front_end.prior_length_m`` are the run's
-    ``FrontEndConfig`` pseudo-counts (0 and 0 by default: the ML rates)."""
+    """``front_end.prior_hits`` / ``front_end.prior_length_m`` / ``front_end.
+    local_map_scans`` are the run's ``FrontEndConfig`` settings (by default the ML rates
+    of every scan so far)."""
     seen = []
 
     def run_slam(ranges, az, odo, cfg, *args, **kwargs):
@@ -754,8 +755,15 @@ def test_slam_front_end_rate_prior_reaches_the_front_end(tmp_path, monkeypatch):
         raise RuntimeError("stop here")
 
     for overrides, want in (
-        ([], (0.0, 0.0)),
-        (["front_end.prior_hits=0.25", "front_end.prior_length_m=0.75"], (0.25, 0.75)),
+        ([], (0.0, 0.0, 0)),
+        (
+            [
+                "front_end.prior_hits=0.25",
+                "front_end.prior_length_m=0.75",
+                "front_end.local_map_scans=12",
+            ],
+            (0.25, 0.75, 12),
+        ),
     ):
         mod, run = _slam_in_process(
             tmp_path, monkeypatch, "variants=[decay_rate_pose_graph]", *overrides
@@ -763,7 +771,8 @@ def test_slam_front_end_rate_prior_reaches_the_front_end(tmp_path, monkeypatch):
         monkeypatch.setattr(mod.slam, "run_slam", run_slam)
         with pytest.raises(SystemExit):
             run()
-        assert (seen[-1].prior_hits, seen[-1].prior_length_m) == want
+        got = seen[-1]
+        assert (got.prior_hits, got.prior_length_m, got.local_map_scans) == want
 
 
 def test_slam_seed_summary_skips_a_failed_seed(tmp_path, monkeypatch):

@@ -202,6 +202,30 @@ def test_slam_grazing_cells(office_log, tmp_path):
     assert np.abs(fe[0.0] - fe[1.0]).max() > 1e-6
 
 
+@pytest.mark.slow  # ~30 s: SLAM of 12 scans, twice
+def test_slam_local_map_scans(office_log, tmp_path):
+    """``--local-map-scans N`` is :class:`lidarjax.slam.FrontEndConfig`'s
+    ``local_map_scans`` (recorded in slam.json); the front end equals run_front_end's with
+    it, and a 4-scan map moves it against the map of every scan so far (0)."""
+    from lidarjax import slam
+
+    path = office_log[0]
+    log = load_carmen(path)
+    cap = log.usable_range_m
+    ranges, odo = np.minimum(log.ranges_m[:12], cap), log.odometry[:12]
+    fe = {}
+    for n in (0, 4):
+        out = tmp_path / f"l{n}"
+        args = ["slam", str(path), "-o", str(out), "--no-progress", "--scans", "0:12"]
+        assert main([*args, "--local-map-scans", str(n)]) == 0
+        assert json.loads((out / "slam.json").read_text())["local_map_scans"] == n
+        _, fe[n] = _poses_of_tum(out / "front_end.tum")
+        front = slam.FrontEndConfig(range_cap_m=cap, window_m=cap + 2.0, local_map_scans=n)
+        ref = slam.run_front_end(ranges, log.azimuths_rad, odo, front)
+        np.testing.assert_allclose(fe[n], ref.poses, atol=1e-9)
+    assert np.abs(fe[0] - fe[4]).max() > 1e-6
+
+
 @pytest.mark.slow  # ~20 s: SLAM of 12 scans
 def test_slam_resimulate(office_log, tmp_path):
     """``--resimulate SEED`` runs SLAM on :func:`lidarjax.sim.resimulate_scans` of the
@@ -371,6 +395,8 @@ def test_slam_odometry_choice(office_log, capsys):
         (["--rpe-delta", "0"], "--rpe-delta", "positive"),
         (["--grazing-cells", "-1"], "--grazing-cells", ">= 0"),
         (["--grazing-cells", "nan"], "--grazing-cells", ">= 0"),
+        (["--local-map-scans", "-5"], "--local-map-scans", ">= 0"),
+        (["--local-map-scans", "2.5"], "--local-map-scans", "invalid int"),
         (["--drift", "-2"], "--drift", ">= 0"),
         (["--resimulate", "-1"], "--resimulate", ">= 0"),
         (["--scans", "3:4"], "--scans", "at least 2"),

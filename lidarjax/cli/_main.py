@@ -323,6 +323,15 @@ def build_parser() -> argparse.ArgumentParser:
         "out of the free space (the map's and the match's; 0: off; decay-rate model only)",
     )
     p.add_argument(
+        "--local-map-scans",
+        type=int,
+        default=0,
+        metavar="N",
+        help="the front end matches each scan against the last N scans only, and the loop "
+        "closures alone join revisits (default 0: against every scan so far, with the front "
+        "end's own revisits in the pose graph)",
+    )
+    p.add_argument(
         "--drift",
         type=int,
         metavar="SEED",

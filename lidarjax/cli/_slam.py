@@ -209,6 +209,9 @@ def cmd_slam(args) -> int:
     grazing = float(args.grazing_cells)
     if not (math.isfinite(grazing) and grazing >= 0):
         raise CliInputError("--grazing-cells", f"must be a number >= 0, got {grazing}")
+    local = args.local_map_scans
+    if local < 0:
+        raise CliInputError("--local-map-scans", f"must be >= 0, got {local}")
     rpe_delta = _positive(args.rpe_delta, "--rpe-delta")
     loaded, idx = load_log_scans(args)
     log = loaded.log
@@ -243,6 +246,7 @@ def cmd_slam(args) -> int:
         resolution_m=resolution,
         grazing_cells=grazing,
         grazing_max_m=max(base.grazing_max_m, grazing * resolution),
+        local_map_scans=local,
         **{k: noise * getattr(base, k) for k in ODOMETRY_SIGMAS},
     ).with_range_cap(cap)
     cfg = slam.SlamConfig(
@@ -250,6 +254,9 @@ def cmd_slam(args) -> int:
         back=slam.BackEndConfig(resolution_m=resolution, range_cap_m=min(10.0, cap)),
         back_end=args.back_end,
         loop_rounds=int(args.loop_rounds),
+        # a local map's front end never matched two visits to each other: its relative
+        # pose between them is no measurement
+        revisits=local == 0,
     )
     res = slam.run_slam(ranges, az, odo, cfg, progress=not args.no_progress)
     est = np.asarray(res.poses, float)
@@ -310,6 +317,7 @@ def cmd_slam(args) -> int:
         "loop_rounds": int(args.loop_rounds),
         "odometry_noise": noise,
         "grazing_cells": grazing,
+        "local_map_scans": local,
         "range_cap_m": cap,
         "resolution_m": resolution,
         "azimuth_layout": loaded.azimuth_layout,

@@ -179,10 +179,21 @@ def test_slam_back_end_is_run_slams(office_log, tmp_path):
     assert np.abs(ref.poses - ref.pose_graph_poses).max() > 1e-6  # the back end moved them
 
 
-@pytest.mark.slow  # ~30 s: SLAM of 12 scans, twice
-def test_slam_grazing_cells(office_log, tmp_path):
-    """``--grazing-cells N`` is :class:`lidarjax.slam.FrontEndConfig`'s ``grazing_cells``
-    (0: off, which moves the front end; recorded in slam.json)."""
+@pytest.mark.slow  # ~30 s each: SLAM of 12 scans, twice
+@pytest.mark.parametrize(
+    "option, field, values",
+    [
+        # 0: off, which moves the front end
+        ("--grazing-cells", "grazing_cells", (0.0, 1.0)),
+        # a 4-scan map moves it against the map of every scan so far (0)
+        ("--local-map-scans", "local_map_scans", (0, 4)),
+    ],
+)
+def test_slam_front_end_options(office_log, tmp_path, option, field, values):
+    """``--grazing-cells N`` and ``--local-map-scans N`` are
+    :class:`lidarjax.slam.FrontEndConfig`'s ``grazing_cells`` and ``local_map_scans``:
+    recorded in slam.json, the front end equals run_front_end's with them, and the two
+    values give different front ends."""
     from lidarjax import slam
 
     path = office_log[0]
@@ -190,40 +201,16 @@ def test_slam_grazing_cells(office_log, tmp_path):
     cap = log.usable_range_m
     ranges, odo = np.minimum(log.ranges_m[:12], cap), log.odometry[:12]
     fe = {}
-    for n in (0.0, 1.0):
-        out = tmp_path / f"g{n}"
+    for n in values:
+        out = tmp_path / f"o{n}"
         args = ["slam", str(path), "-o", str(out), "--no-progress", "--scans", "0:12"]
-        assert main([*args, "--grazing-cells", str(n)]) == 0
-        assert json.loads((out / "slam.json").read_text())["grazing_cells"] == n
+        assert main([*args, option, str(n)]) == 0
+        assert json.loads((out / "slam.json").read_text())[field] == n
         _, fe[n] = _poses_of_tum(out / "front_end.tum")
-        front = slam.FrontEndConfig(range_cap_m=cap, window_m=cap + 2.0, grazing_cells=n)
+        front = slam.FrontEndConfig(range_cap_m=cap, window_m=cap + 2.0, **{field: n})
         ref = slam.run_front_end(ranges, log.azimuths_rad, odo, front)
         np.testing.assert_allclose(fe[n], ref.poses, atol=1e-9)
-    assert np.abs(fe[0.0] - fe[1.0]).max() > 1e-6
-
-
-@pytest.mark.slow  # ~30 s: SLAM of 12 scans, twice
-def test_slam_local_map_scans(office_log, tmp_path):
-    """``--local-map-scans N`` is :class:`lidarjax.slam.FrontEndConfig`'s
-    ``local_map_scans`` (recorded in slam.json); the front end equals run_front_end's with
-    it, and a 4-scan map moves it against the map of every scan so far (0)."""
-    from lidarjax import slam
-
-    path = office_log[0]
-    log = load_carmen(path)
-    cap = log.usable_range_m
-    ranges, odo = np.minimum(log.ranges_m[:12], cap), log.odometry[:12]
-    fe = {}
-    for n in (0, 4):
-        out = tmp_path / f"l{n}"
-        args = ["slam", str(path), "-o", str(out), "--no-progress", "--scans", "0:12"]
-        assert main([*args, "--local-map-scans", str(n)]) == 0
-        assert json.loads((out / "slam.json").read_text())["local_map_scans"] == n
-        _, fe[n] = _poses_of_tum(out / "front_end.tum")
-        front = slam.FrontEndConfig(range_cap_m=cap, window_m=cap + 2.0, local_map_scans=n)
-        ref = slam.run_front_end(ranges, log.azimuths_rad, odo, front)
-        np.testing.assert_allclose(fe[n], ref.poses, atol=1e-9)
-    assert np.abs(fe[0] - fe[4]).max() > 1e-6
+    assert np.abs(fe[values[0]] - fe[values[1]]).max() > 1e-6
 
 
 @pytest.mark.slow  # ~20 s: SLAM of 12 scans

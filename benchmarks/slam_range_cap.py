@@ -35,14 +35,17 @@ def time_front_ends(ranges, az, odo, configs: dict, rate) -> dict:
     return out
 
 
-def compare_front_ends(argv, out, default_logs, configs_of, ratio: tuple[str, str, str]):
+def compare_front_ends(
+    argv, out, default_logs, configs_of, ratio: tuple[str, str, str], default_scans: int = 150
+):
     """The range-cap benchmarks' run: for each log of ``--logs`` (default
-    ``default_logs``), its first ``--scans`` scans timed under ``configs_of(log)`` (a
-    ``(configs, extra record fields)`` pair; :func:`time_front_ends`), and ``ratio =
+    ``default_logs``), its first ``--scans`` scans (default ``default_scans``) timed
+    under ``configs_of(log)`` (a ``(configs, extra record fields)`` pair;
+    :func:`time_front_ends`), and ``ratio =
     (key, numerator, denominator)`` of their scans/s; the report is written to ``out``."""
     ap = argparse.ArgumentParser()
     ap.add_argument("--logs", nargs="+", default=default_logs)
-    ap.add_argument("--scans", type=int, default=150)
+    ap.add_argument("--scans", type=int, default=default_scans)
     args = ap.parse_args(argv)
     report = {"machine": machine_info(), "scans": args.scans, "logs": {}}
     for name in args.logs:

@@ -1224,7 +1224,7 @@ class SlamLoops:
 @dataclass
 class SlamPoseGraph:
     robust_chain: bool = _f()
-    revisits: bool = _f()
+    revisits: bool | None = _f()  # null: only with front_end.local_map_scans 0
 
 
 @dataclass

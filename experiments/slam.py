@@ -159,7 +159,9 @@ def _error_budget(base, odo, gt, scfg) -> dict:
     fe, loops, rv = base.front_end_poses, base.loops, base.revisits
 
     def ate(front_poses, lp=loops):
-        pg = slam.front_end_pose_graph(front_poses, odo, lp, scfg, rv if scfg.revisits else None)
+        pg = slam.front_end_pose_graph(
+            front_poses, odo, lp, scfg, rv if scfg.uses_revisits else None
+        )
         return absolute_trajectory_error(np.asarray(pg.poses), gt).rmse_m
 
     def rechain(inc):

@@ -747,15 +747,16 @@ def test_slam_failed_variant_is_recorded_and_the_others_are_scored(tmp_path, mon
 def test_slam_front_end_rate_prior_reaches_the_front_end(tmp_path, monkeypatch):
     """``front_end.prior_hits`` / ``front_end.prior_length_m`` / ``front_end.
     local_map_scans`` are the run's ``FrontEndConfig`` settings (by default the ML rates
-    of every scan so far)."""
+    of the last 100 scans), and ``pose_graph.revisits`` (null by default) is its
+    ``SlamConfig.revisits``: the revisits only for a whole-map front end unless set."""
     seen = []
 
     def run_slam(ranges, az, odo, cfg, *args, **kwargs):
-        seen.append(cfg.front)
+        seen.append(cfg)
         raise RuntimeError("stop here")
 
-    for overrides, want in (
-        ([], (0.0, 0.0, 0)),
+    for overrides, want, revisits in (
+        ([], (0.0, 0.0, 100), False),
         (
             [
                 "front_end.prior_hits=0.25",
@@ -763,7 +764,11 @@ def test_slam_front_end_rate_prior_reaches_the_front_end(tmp_path, monkeypatch):
                 "front_end.local_map_scans=12",
             ],
             (0.25, 0.75, 12),
+            False,
         ),
+        (["front_end.local_map_scans=0"], (0.0, 0.0, 0), True),
+        (["pose_graph.revisits=true"], (0.0, 0.0, 100), True),
+        (["front_end.local_map_scans=0", "pose_graph.revisits=false"], (0.0, 0.0, 0), False),
     ):
         mod, run = _slam_in_process(
             tmp_path, monkeypatch, "variants=[decay_rate_pose_graph]", *overrides
@@ -771,8 +776,9 @@ def test_slam_front_end_rate_prior_reaches_the_front_end(tmp_path, monkeypatch):
         monkeypatch.setattr(mod.slam, "run_slam", run_slam)
         with pytest.raises(SystemExit):
             run()
-        got = seen[-1]
+        got = seen[-1].front
         assert (got.prior_hits, got.prior_length_m, got.local_map_scans) == want
+        assert seen[-1].uses_revisits is revisits
 
 
 def test_slam_seed_summary_skips_a_failed_seed(tmp_path, monkeypatch):

@@ -282,6 +282,65 @@ def test_front_end_on_the_office(office_short):
     assert np.linalg.eigvalsh(r.information[1:]).min() > 0
 
 
+@pytest.mark.parametrize("n_local", [6, 100])
+def test_front_end_local_map_holds_the_last_scans_only(office_short, n_local):
+    """FrontEndConfig.local_map_scans: each scan is matched against the map of the
+    ``n_local`` scans before it (rebuilt here from scratch at the front end's poses), and
+    the final map holds the last ``n_local`` scans; 100 > 40 scans is the whole map."""
+    truth, ranges, odo = office_short
+    n = truth.shape[0]
+    cfg = FrontEndConfig(local_map_scans=n_local)
+    r = run_front_end(ranges, AZ, odo, cfg)
+    whole = run_front_end(ranges, AZ, odo, FrontEndConfig(local_map_scans=0))
+    if n_local >= n:
+        np.testing.assert_array_equal(r.poses, whole.poses)
+    else:
+        assert np.abs(r.poses - whole.poses).max() > 1e-6  # a different map, other matches
+    inc = between_np(odo[:-1], odo[1:])
+    sigmas = odometry_sigmas(inc, cfg)
+    for k in (n_local + 3, n - 1) if n_local < n else (n - 1,):
+        grid = grid_map(cfg)
+        for j in range(max(0, k - n_local), k):
+            grid.add_scan(r.poses[j], AZ, ranges[j])
+        pred = compose_np(r.poses[k - 1], inc[k - 1])
+        m = match_scan(grid, AZ, ranges[k], pred, cfg, prior_sigmas=sigmas[k - 1])
+        np.testing.assert_allclose(m.pose, r.poses[k], atol=1e-7)
+    # the final map: the last n_local scans' statistics (hits exact, lengths to round-off
+    # of the adds and removals), on the same lattice
+    ref = grid_map(cfg)
+    for j in range(max(0, n - n_local), n):
+        ref.add_scan(r.poses[j], AZ, ranges[j])
+
+    def on_lattice(g, lo, shape):  # g's statistics on the global cells lo .. lo + shape
+        hits, lengths = np.zeros(shape), np.zeros(shape)
+        i, j = g.lo - lo
+        hits[i : i + g.hits.shape[0], j : j + g.hits.shape[1]] = g.hits
+        lengths[i : i + g.hits.shape[0], j : j + g.hits.shape[1]] = g.lengths
+        return hits, lengths
+
+    got = r.grid
+    lo = np.minimum(got.lo, ref.lo)
+    shape = tuple(np.maximum(got.lo + got.hits.shape, ref.lo + ref.hits.shape) - lo)
+    (h1, l1), (h2, l2) = on_lattice(got, lo, shape), on_lattice(ref, lo, shape)
+    assert h2.sum() > 0 and l2.sum() > 0
+    np.testing.assert_array_equal(h1, h2)
+    np.testing.assert_allclose(l1, l2, rtol=0, atol=1e-9)
+
+
+def test_slam_config_revisits_follow_the_front_end_map():
+    """SlamConfig.revisits None (default): the revisits only for a whole-map front end;
+    an explicit bool wins."""
+    assert FrontEndConfig().local_map_scans == 100
+    assert SlamConfig().revisits is None and not SlamConfig().uses_revisits
+    whole = FrontEndConfig(local_map_scans=0)
+    assert SlamConfig(front=whole).uses_revisits
+    assert not SlamConfig(front=whole, revisits=False).uses_revisits
+    assert SlamConfig(revisits=True).uses_revisits
+    # dataclasses.replace of the front end re-decides it
+    cfg = dataclasses.replace(SlamConfig(), front=whole)
+    assert cfg.uses_revisits
+
+
 def test_match_runs_in_its_configured_dtype_whatever_jax_default(office_short):
     """FrontEndConfig.dtype: None (the default) follows JAX's default; "float64" is the
     same computation with JAX's default float32 as with x64 on; "float32" is another
@@ -1182,16 +1241,23 @@ def test_alternating_pose_steps_native_equal_jax(back_end_problem):
 
 
 @pytest.mark.slow  # a 135-scan run: front end, loops, pose graph and joint back end
-def test_run_slam_end_to_end(office_revisit_scans):
+@pytest.mark.parametrize("n_local", [100, 0])  # the default local map; every scan so far
+def test_run_slam_end_to_end(office_revisit_scans, n_local):
     truth, ranges = office_revisit_scans
     odo = wheel_odometry(truth, seed=0, **DRIFT)
-    cfg = SlamConfig(loops=LoopConfig(every=5), back=BackEndConfig(max_steps=10, n_nodes=64))
+    cfg = SlamConfig(
+        front=FrontEndConfig(local_map_scans=n_local),
+        loops=LoopConfig(every=5),
+        back=BackEndConfig(max_steps=10, n_nodes=64),
+    )
     r = run_slam(ranges, AZ, odo, cfg)
     n = truth.shape[0]
     assert isinstance(r, SlamResult)
     for p in (r.poses, r.front_end_poses, r.pose_graph_poses):
         assert p.shape == (n, 3) and np.all(np.isfinite(p))
-    assert len(r.loops.edges) > 0 and len(r.revisits.edges) > 0
+    assert len(r.loops.edges) > 0
+    # the revisits only with a whole-map front end (SlamConfig.revisits None)
+    assert (len(r.revisits.edges) > 0) == (n_local == 0)
     # the second loop round adds pairs, never one twice
     assert len({tuple(e) for e in r.loops.edges.tolist()}) == len(r.loops.edges)
     assert set(r.seconds) == {"front_end", "loops", "pose_graph", "back_end"}

@@ -325,11 +325,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--local-map-scans",
         type=int,
-        default=0,
+        default=100,
         metavar="N",
         help="the front end matches each scan against the last N scans only, and the loop "
-        "closures alone join revisits (default 0: against every scan so far, with the front "
-        "end's own revisits in the pose graph)",
+        "closures alone join revisits; 0: against every scan so far, with the front end's "
+        "own revisits in the pose graph (default: 100)",
     )
     p.add_argument(
         "--drift",

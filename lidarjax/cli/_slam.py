@@ -254,9 +254,8 @@ def cmd_slam(args) -> int:
         back=slam.BackEndConfig(resolution_m=resolution, range_cap_m=min(10.0, cap)),
         back_end=args.back_end,
         loop_rounds=int(args.loop_rounds),
-        # a local map's front end never matched two visits to each other: its relative
-        # pose between them is no measurement
-        revisits=local == 0,
+        # revisits=None: only with local == 0 (a local map's front end never matched two
+        # visits to each other: its relative pose between them is no measurement)
     )
     res = slam.run_slam(ranges, az, odo, cfg, progress=not args.no_progress)
     est = np.asarray(res.poses, float)

@@ -158,13 +158,14 @@ class FrontEndConfig:
         local_map_scans: match against the last this many scans only (0: every scan so
             far). A local map never snaps onto an earlier visit; loop closures then must.
             The front end alone drifts more (intel, drift seed 0: ATE 0.095 -> 0.495 m at
-            30 scans; its heading takes up about 6 % of the odometry's heading error).
-            Under :func:`~lidarjax.slam.run_slam` (with ``SlamConfig(revisits=False)``)
-            the pose graph is then only as good as the loop closures are dense: at 30
-            scans, over six drift seeds, intel (about 360 loops a run) 0.082 -> 0.060 m
-            mean, re-simulated intel 0.083 -> 0.043 m (seed 0), but fhw (about 120)
-            0.124 -> 0.140 m and orebro (about 20) worse too (docs/results/slam.md,
-            stop 61). Off by default.
+            30 scans; its heading takes up about 6 % of the odometry's heading error), so
+            for a lidar odometry without loop closures set 0. Under
+            :func:`~lidarjax.slam.run_slam` (whose revisits it turns off by default) the
+            pose graph, over six drift seeds, mean / worst (m): at 100 scans (default since
+            stop 62) intel 0.082 / 0.112 -> 0.063 / 0.080, fhw 0.124 / 0.150 -> 0.129 /
+            0.143, orebro 0.276 / 0.501 -> 0.242 / 0.408 against 0 (every scan); at 30
+            scans intel 0.060, but fhw 0.140 and orebro 0.371, where loop closures are
+            sparse (docs/results/slam.md, stops 61-62).
         gate_sigmas: a match farther than this (Mahalanobis, under the prior) from the
             prior's mean is implausible; the other candidate is taken, or (neither
             plausible) the last stage from the prior's mean under a prior
@@ -261,7 +262,7 @@ class FrontEndConfig:
     search_step_yaw_rad: float = 0.01
     search_blur_m: float = 0.1
     search_exclude_m: float = 0.2
-    local_map_scans: int = 0
+    local_map_scans: int = 100
     gate_sigmas: float = 7.0
     gate_stiffness: float = 3.0
     ambiguous_margin: float = 15.0

@@ -70,9 +70,10 @@ class SlamConfig:
             orebro 0.784 m against the front end's 0.196 and 0.366 m; with the revisits
             alone 0.076 and 0.272 m. For a whole-map front end only: a local map's
             (``FrontEndConfig.local_map_scans > 0``) never matched two visits to each
-            other, so its relative pose between them is no measurement; turn them off
-            there (intel, fhw, drift seed 0, 30 scans: 0.061 -> 0.060 m, 0.160 ->
-            0.150 m).
+            other, so its relative pose between them is no measurement (intel, fhw, drift
+            seed 0, 30 scans: with them 0.061 and 0.160 m, without 0.060 and 0.150 m).
+            None (default): on exactly when ``front.local_map_scans`` is 0
+            (:attr:`uses_revisits`).
         revisit_min_overlap, revisit_cell_m: ``min_overlap`` and ``cell_m`` of
             :func:`~lidarjax.slam.find_revisits` (its candidates are ``loops``').
         revisit_sigma_scale: the revisits' sigmas over the loop closures' (> 1: a fresh
@@ -99,7 +100,7 @@ class SlamConfig:
     loop_sigma_yaw_rad: float = 0.02
     cauchy_scale: float = 1.0
     robust_chain: bool = True
-    revisits: bool = True
+    revisits: bool | None = None
     revisit_min_overlap: float = 0.5
     revisit_cell_m: float = 0.1
     revisit_sigma_scale: float = 4.0
@@ -122,15 +123,24 @@ class SlamConfig:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise ValueError(f"{name} must be a positive finite number, got {v!r}")
-        for name in ("robust_chain", "revisits"):
-            if not isinstance(getattr(self, name), bool):
-                raise ValueError(f"{name} must be a bool, got {getattr(self, name)!r}")
+        if not isinstance(self.robust_chain, bool):
+            raise ValueError(f"robust_chain must be a bool, got {self.robust_chain!r}")
+        if self.revisits is not None and not isinstance(self.revisits, bool):
+            raise ValueError(f"revisits must be a bool or None, got {self.revisits!r}")
         v = self.loop_rounds
         if isinstance(v, bool) or not isinstance(v, int) or v < 1:
             raise ValueError(f"loop_rounds must be an int >= 1, got {v!r}")
         v = self.revisit_min_overlap
         if not (isinstance(v, (int, float)) and not isinstance(v, bool) and 0 < v <= 1):
             raise ValueError(f"revisit_min_overlap must be in (0, 1], got {v!r}")
+
+    @property
+    def uses_revisits(self) -> bool:
+        """Whether :func:`run_slam` adds the revisits: ``revisits`` if set, else whether
+        the front end matches against every scan so far (``front.local_map_scans == 0``)."""
+        if self.revisits is not None:
+            return self.revisits
+        return self.front.local_map_scans == 0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -143,7 +153,7 @@ class SlamResult:
         pose_graph_poses: after the pose graph.
         loops: the accepted loop closures (of every round).
         revisits: :func:`~lidarjax.slam.find_revisits`'s pairs (empty without
-            ``cfg.revisits``).
+            ``cfg.uses_revisits``).
         back_end: the back end's result (None for ``"none"``).
         seconds: wall time per stage (s): ``front_end``, ``loops`` (with the revisits),
             ``pose_graph``, ``back_end``.
@@ -192,7 +202,7 @@ def front_end_pose_graph(
         loops: the loop closures (:func:`~lidarjax.slam.find_loops`).
         cfg: settings.
         revisits: :func:`~lidarjax.slam.find_revisits` on ``front_end_poses`` (None:
-            none; :func:`run_slam` passes them with ``cfg.revisits``).
+            none; :func:`run_slam` passes them with ``cfg.uses_revisits``).
 
     Returns:
         :class:`~lidarjax.slam.PoseGraphResult`; its ``edge_weights`` are ordered chain,
@@ -279,7 +289,7 @@ def run_slam(
     secs["front_end"] = fe.seconds
     t = time.perf_counter()
     loops = find_loops(rng, az, fe.poses, cfg.loops, cfg.front, progress=progress)
-    if cfg.revisits:
+    if cfg.uses_revisits:
         revisits = find_revisits(
             rng,
             az,

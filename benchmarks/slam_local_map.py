@@ -4,8 +4,8 @@ every scan so far (``local_map_scans=0``, the default before), timed in the same
 scans per second and real-time factor of :func:`lidarjax.slam.run_front_end`.
 
 A local map removes the scan that leaves it (one more ``GridMap.add_scan``, with
-``sign=-1``) after each match from scan 101 on, and the map the matches read stays
-small. On the first ``--scans`` scans of each log with the experiment's drifting
+``sign=-1``) after each match from scan 101 on; the matches read the same window of the
+map either way. On the first ``--scans`` scans of each log with the experiment's drifting
 odometry (``log_inputs`` of ``benchmarks/slam.py``); the two configurations run one after
 the other. Scans/s leave out the first two scans (the first match compiles). The
 1-minute load average is recorded before every timing. Writes

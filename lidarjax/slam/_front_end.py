@@ -1085,7 +1085,8 @@ def run_front_end(
     initial_pose: np.ndarray | None = None,
     progress: bool = False,
 ) -> FrontEndResult:
-    """Decay-rate lidar odometry: match every scan against the map of the scans before it.
+    """Decay-rate lidar odometry: match every scan against the map of the scans before it
+    (the last ``cfg.local_map_scans`` of them, 100 by default; 0: all of them).
 
     Args:
         ranges_m: ``[N B]`` readings (m); no-returns as the sensor's maximum reading (any

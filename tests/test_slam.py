@@ -310,19 +310,16 @@ def test_front_end_local_map_holds_the_last_scans_only(office_short, n_local):
     ref = grid_map(cfg)
     for j in range(max(0, n - n_local), n):
         ref.add_scan(r.poses[j], AZ, ranges[j])
-
-    def on_lattice(g, lo, shape):  # g's statistics on the global cells lo .. lo + shape
-        hits, lengths = np.zeros(shape), np.zeros(shape)
-        i, j = g.lo - lo
-        hits[i : i + g.hits.shape[0], j : j + g.hits.shape[1]] = g.hits
-        lengths[i : i + g.hits.shape[0], j : j + g.hits.shape[1]] = g.lengths
-        return hits, lengths
-
     got = r.grid
     lo = np.minimum(got.lo, ref.lo)
-    shape = tuple(np.maximum(got.lo + got.hits.shape, ref.lo + ref.hits.shape) - lo)
-    (h1, l1), (h2, l2) = on_lattice(got, lo, shape), on_lattice(ref, lo, shape)
-    assert h2.sum() > 0 and l2.sum() > 0
+    hi = np.maximum(got.lo + got.hits.shape, ref.lo + ref.hits.shape)
+    side = int((hi - lo).max()) + 2  # one window (GridMap.window) covering both grids
+    center = (lo + hi) / 2 * got.res
+    (h1, l1, o1), (h2, l2, o2) = got.window(center, side), ref.window(center, side)
+    np.testing.assert_array_equal(o1, o2)
+    assert h1.sum() == got.hits.sum() and h2.sum() == ref.hits.sum() > 0  # all of them
+    np.testing.assert_allclose([l1.sum(), l2.sum()], [got.lengths.sum(), ref.lengths.sum()])
+    assert l2.sum() > 0
     np.testing.assert_array_equal(h1, h2)
     np.testing.assert_allclose(l1, l2, rtol=0, atol=1e-9)
 

@@ -256,8 +256,8 @@ def build_parser() -> argparse.ArgumentParser:
         lidarjax.slam.run_slam: the online front end matches every scan against the
         decay-rate map of the --local-map-scans scans before it (coarse to fine, from
         the odometry's prediction), loop closures are searched against earlier visits,
-        and a pose graph (and optionally a joint or alternating back end over all poses and the map)
-        corrects the drift. Readings at or beyond --range-cap (default: the smallest of
+        and a pose graph (and optionally a joint or alternating back end over all poses
+        and the map) corrects the drift. Readings at or beyond --range-cap (default: the smallest of
         20, 30 and 40 m that keeps 98 % of the log's returns, at most the sensor's
         usable range) are no-returns. The shared CARMEN logs'
         odometry equals their corrected poses; --drift SEED simulates a drifting wheel

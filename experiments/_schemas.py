@@ -1225,6 +1225,7 @@ class SlamLoops:
 class SlamPoseGraph:
     robust_chain: bool = _f()
     revisits: bool | None = _f()  # null: only with front_end.local_map_scans 0
+    calibrate_odometry: bool = _f()
 
 
 @dataclass

@@ -278,6 +278,7 @@ def _run_log(cfg, name, seed, out, front, loops, back, multi):
         robust_chain=cfg.pose_graph.robust_chain,
         revisits=cfg.pose_graph.revisits,
         loop_rounds=cfg.loops.rounds,
+        calibrate_odometry=cfg.pose_graph.calibrate_odometry,
     )
     if dr:
         # the front end, loops and pose graph once; each back end from the pose graph
@@ -293,8 +294,16 @@ def _run_log(cfg, name, seed, out, front, loops, back, multi):
                 "seconds_loops": base.seconds["loops"],
                 "seconds_pose_graph": base.seconds["pose_graph"],
                 "front_end_ate_rmse_m": absolute_trajectory_error(base.front_end_poses, gt).rmse_m,
-                "error_budget": _error_budget(base, odo, gt, scfg),
+                # the pose graph's odometry: the raw one without its systematic heading
+                # errors (pose_graph.calibrate_odometry)
+                "odometry_calibration": None
+                if base.odometry_calibration is None
+                else dataclasses.asdict(base.odometry_calibration),
+                "error_budget": _error_budget(base, base.odometry, gt, scfg),
             }
+            # the back ends' odometry factors: the pose graph's odometry
+            b_inc = slam._front_end.between_np(base.odometry[:-1], base.odometry[1:])
+            b_sig = slam.odometry_sigmas(b_inc, front)
         except Exception as e:  # every decay-rate variant needs it
             failed.update(dict.fromkeys(dr, _failure(name, seed, dr, e)))
             dr = []
@@ -305,7 +314,7 @@ def _run_log(cfg, name, seed, out, front, loops, back, multi):
                     poses, extra = base.pose_graph_poses, {}
                 else:
                     f = slam.optimize_joint if v.endswith("joint") else slam.optimize_alternating
-                    b = f(base.pose_graph_poses, az, ranges, edges, inc, sig, back)
+                    b = f(base.pose_graph_poses, az, ranges, edges, b_inc, b_sig, back)
                     poses = b.poses
                     extra = {
                         "seconds_back_end": b.seconds,

@@ -141,6 +141,9 @@ def test_slam_is_run_slam_on_the_log(office_slam, office_log):
     ref = slam.run_slam(np.minimum(log.ranges_m, cap), log.azimuths_rad, log.odometry, cfg)
     np.testing.assert_allclose(est, ref.poses, atol=1e-9)  # TUM: full precision
     np.testing.assert_allclose(fe, ref.front_end_poses, atol=1e-9)
+    # the odometry's calibration (on by default) is run_slam's
+    cal = json.loads((out / "slam.json").read_text())["odometry_calibration"]
+    assert cal == dataclasses.asdict(ref.odometry_calibration)
     # front_end.csv: the matches' rays, gate flags and the sds of their information
     rows = np.genfromtxt(out / "front_end.csv", delimiter=",", names=True)
     np.testing.assert_array_equal(rows["rays_used"], ref.front_end_n_used)
@@ -211,6 +214,30 @@ def test_slam_front_end_options(office_log, tmp_path, option, field, values):
         ref = slam.run_front_end(ranges, log.azimuths_rad, odo, front)
         np.testing.assert_allclose(fe[n], ref.poses, atol=1e-9)
     assert np.abs(fe[values[0]] - fe[values[1]]).max() > 1e-6
+
+
+@pytest.mark.slow  # ~20 s: SLAM of 12 scans
+def test_slam_without_odometry_calibration(office_log, tmp_path):
+    """``--no-odometry-calibration``: slam.json records none, and the estimate is
+    :func:`lidarjax.slam.run_slam`'s with ``calibrate_odometry=False``."""
+    from lidarjax import slam
+
+    path = office_log[0]
+    out = tmp_path / "n"
+    args = ["slam", str(path), "-o", str(out), "--no-progress", "--scans", "0:12"]
+    assert main([*args, "--no-odometry-calibration"]) == 0
+    assert json.loads((out / "slam.json").read_text())["odometry_calibration"] is None
+    log = load_carmen(path)
+    cap = log.usable_range_m
+    front = slam.FrontEndConfig(range_cap_m=cap, window_m=cap + 2.0)
+    cfg = slam.SlamConfig(front=front, back_end="none", calibrate_odometry=False)
+    ref = slam.run_slam(
+        np.minimum(log.ranges_m[:12], cap), log.azimuths_rad, log.odometry[:12], cfg
+    )
+    _, est = _poses_of_tum(out / "trajectory.tum")
+    np.testing.assert_allclose(est, ref.poses, atol=1e-9)
+    assert ref.odometry_calibration is None
+    np.testing.assert_allclose(ref.odometry, log.odometry[:12])
 
 
 @pytest.mark.slow  # ~20 s: SLAM of 12 scans

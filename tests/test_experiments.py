@@ -748,15 +748,16 @@ def test_slam_front_end_rate_prior_reaches_the_front_end(tmp_path, monkeypatch):
     """``front_end.prior_hits`` / ``front_end.prior_length_m`` / ``front_end.
     local_map_scans`` are the run's ``FrontEndConfig`` settings (by default the ML rates
     of the last 100 scans), and ``pose_graph.revisits`` (null by default) is its
-    ``SlamConfig.revisits``: the revisits only for a whole-map front end unless set."""
+    ``SlamConfig.revisits``: the revisits only for a whole-map front end unless set;
+    ``pose_graph.calibrate_odometry`` (true by default) is ``SlamConfig.calibrate_odometry``."""
     seen = []
 
     def run_slam(ranges, az, odo, cfg, *args, **kwargs):
         seen.append(cfg)
         raise RuntimeError("stop here")
 
-    for overrides, want, revisits in (
-        ([], (0.0, 0.0, 100), False),
+    for overrides, want, revisits, calibrate in (
+        ([], (0.0, 0.0, 100), False, True),
         (
             [
                 "front_end.prior_hits=0.25",
@@ -765,10 +766,17 @@ def test_slam_front_end_rate_prior_reaches_the_front_end(tmp_path, monkeypatch):
             ],
             (0.25, 0.75, 12),
             False,
+            True,
         ),
-        (["front_end.local_map_scans=0"], (0.0, 0.0, 0), True),
-        (["pose_graph.revisits=true"], (0.0, 0.0, 100), True),
-        (["front_end.local_map_scans=0", "pose_graph.revisits=false"], (0.0, 0.0, 0), False),
+        (["front_end.local_map_scans=0"], (0.0, 0.0, 0), True, True),
+        (["pose_graph.revisits=true"], (0.0, 0.0, 100), True, True),
+        (
+            ["front_end.local_map_scans=0", "pose_graph.revisits=false"],
+            (0.0, 0.0, 0),
+            False,
+            True,
+        ),
+        (["pose_graph.calibrate_odometry=false"], (0.0, 0.0, 100), False, False),
     ):
         mod, run = _slam_in_process(
             tmp_path, monkeypatch, "variants=[decay_rate_pose_graph]", *overrides
@@ -779,6 +787,7 @@ def test_slam_front_end_rate_prior_reaches_the_front_end(tmp_path, monkeypatch):
         got = seen[-1].front
         assert (got.prior_hits, got.prior_length_m, got.local_map_scans) == want
         assert seen[-1].uses_revisits is revisits
+        assert seen[-1].calibrate_odometry is calibrate
 
 
 def test_slam_seed_summary_skips_a_failed_seed(tmp_path, monkeypatch):

@@ -332,6 +332,13 @@ def build_parser() -> argparse.ArgumentParser:
         "own revisits in the pose graph (default: 100)",
     )
     p.add_argument(
+        "--no-odometry-calibration",
+        action="store_true",
+        help="give the pose graph the raw odometry; by default its systematic heading "
+        "errors (drift per metre, error per radian turned) are fitted against the front "
+        "end and removed first (reported in slam.json)",
+    )
+    p.add_argument(
         "--drift",
         type=int,
         metavar="SEED",

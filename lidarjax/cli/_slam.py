@@ -254,6 +254,7 @@ def cmd_slam(args) -> int:
         back=slam.BackEndConfig(resolution_m=resolution, range_cap_m=min(10.0, cap)),
         back_end=args.back_end,
         loop_rounds=int(args.loop_rounds),
+        calibrate_odometry=not args.no_odometry_calibration,
         # revisits=None: only with local == 0 (a local map's front end never matched two
         # visits to each other: its relative pose between them is no measurement)
     )
@@ -324,6 +325,14 @@ def cmd_slam(args) -> int:
         "resimulated": resim,
         "n_loops": int(len(res.loops.edges)),
         "n_revisits": int(len(res.revisits.edges)),
+        # the odometry's systematic heading errors, removed before the pose graph
+        "odometry_calibration": None
+        if res.odometry_calibration is None
+        else {
+            "heading_rad_per_m": res.odometry_calibration.heading_rad_per_m,
+            "heading_gain": res.odometry_calibration.heading_gain,
+            "n_used": res.odometry_calibration.n_used,
+        },
         # scans whose match failed the gate: placed near the odometry's prediction
         "front_end_gate_fallbacks": int(np.sum(~np.asarray(res.front_end_plausible[1:]))),
         "seconds": seconds,

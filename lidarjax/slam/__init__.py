@@ -10,6 +10,8 @@ from ._back_end import optimize_joint as optimize_joint
 from ._back_end import trajectory_log_likelihood as trajectory_log_likelihood
 from ._baselines import IcpSlamResult as IcpSlamResult
 from ._baselines import icp_pose_graph_slam as icp_pose_graph_slam
+from ._calibration import OdometryCalibration as OdometryCalibration
+from ._calibration import calibrate_odometry as calibrate_odometry
 from ._diagnostics import ReferenceMatchErrors as ReferenceMatchErrors
 from ._diagnostics import reference_match_errors as reference_match_errors
 from ._front_end import MATCHING_MODELS as MATCHING_MODELS

@@ -96,7 +96,11 @@ class SlamConfig:
             end's increments (:func:`~lidarjax.slam.calibrate_odometry`, the front end's
             fallbacks left out) and give the pose graph and the back end the corrected
             odometry. The odometry factors otherwise pull the heading toward the drift
-            wherever the Cauchy-robust chain gives way (stop 63; see the results).
+            wherever the Cauchy-robust chain gives way: edmonton (drift seeds 0-2, a
+            log nobody tuned to) 0.733 / 1.106 / 1.324 -> 0.397 / 0.800 / 0.961 m,
+            freiburg-101 0.053 / 0.055 / 0.048 -> 0.049 / 0.050 / 0.047 m; intel, fhw
+            and orebro (six seeds) within 2 mm by mean. The front end still predicts
+            from the raw odometry.
     """
 
     front: FrontEndConfig = dataclasses.field(default_factory=FrontEndConfig)

@@ -53,8 +53,8 @@ class OdometryCalibration:
     Attributes:
         heading_rad_per_m: heading drift per metre driven (rad/m; positive: the odometry
             turns left of the truth).
-        heading_gain: relative error of the odometry's turns (dimensionless; 0.01: the
-            odometry reports 1 % more turn than the truth).
+        heading_gain: the share of each odometry turn that is error (dimensionless;
+            0.01: the odometry reports about 1 % more turn than the truth).
         n_used: increments in the fit (those with a plausible match).
     """
 
@@ -156,7 +156,7 @@ def calibrate_odometry(
     sw = np.sqrt(w0)
     for _ in range(iterations):
         z = (r - x @ beta) * sw
-        # a floor keeps exact data (zero spread) finite: it then weighs nothing down
+        # a floor keeps the weights finite where the residuals vanish (exact data)
         scale = max(1.4826 * float(np.median(np.abs(z))) if z.size else 0.0, 1e-9)
         w = w0 / (1.0 + (z / (kernel_width * scale)) ** 2)
         beta = np.linalg.solve(x.T @ (w[:, None] * x) + prior, x.T @ (w * r))

@@ -328,11 +328,7 @@ def cmd_slam(args) -> int:
         # the odometry's systematic heading errors, removed before the pose graph
         "odometry_calibration": None
         if res.odometry_calibration is None
-        else {
-            "heading_rad_per_m": res.odometry_calibration.heading_rad_per_m,
-            "heading_gain": res.odometry_calibration.heading_gain,
-            "n_used": res.odometry_calibration.n_used,
-        },
+        else dataclasses.asdict(res.odometry_calibration),
         # scans whose match failed the gate: placed near the odometry's prediction
         "front_end_gate_fallbacks": int(np.sum(~np.asarray(res.front_end_plausible[1:]))),
         "seconds": seconds,

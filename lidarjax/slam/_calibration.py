@@ -26,7 +26,7 @@ import math
 
 import numpy as np
 
-from ._front_end import FrontEndConfig, between_np, compose_np, odometry_sigmas
+from ._front_end import FrontEndConfig, _wrap, between_np, odometry_sigmas
 
 __all__ = ["OdometryCalibration", "calibrate_odometry"]
 
@@ -40,10 +40,6 @@ def _poses(value, name: str) -> np.ndarray:
     if not np.all(np.isfinite(a)):
         raise ValueError(f"{name} must be finite (it holds NaN or inf)")
     return a
-
-
-def _wrap(a):
-    return np.arctan2(np.sin(a), np.cos(a))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -77,11 +73,13 @@ class OdometryCalibration:
         the first pose (a zero calibration gives the input back to round-off)."""
         odo = _poses(odometry_xy_yaw, "odometry_xy_yaw")
         inc = self.increments(between_np(odo[:-1], odo[1:]))
-        out = np.empty_like(odo)
-        out[0] = odo[0]
-        for k in range(len(inc)):  # a cumulative product: sequential by nature, O(N) NumPy
-            out[k + 1] = compose_np(out[k], inc[k])
-        return out
+        # the SE(2) chain in closed form: headings are a running sum, and each step's
+        # translation turns by the heading before it
+        yaw = odo[0, 2] + np.concatenate([[0.0], np.cumsum(inc[:, 2])])
+        c, s = np.cos(yaw[:-1]), np.sin(yaw[:-1])
+        step = np.stack([c * inc[:, 0] - s * inc[:, 1], s * inc[:, 0] + c * inc[:, 1]], 1)
+        xy = odo[0, :2] + np.concatenate([np.zeros((1, 2)), np.cumsum(step, 0)])
+        return np.column_stack([xy, _wrap(yaw)])
 
 
 def calibrate_odometry(

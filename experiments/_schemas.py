@@ -1226,6 +1226,8 @@ class SlamPoseGraph:
     robust_chain: bool = _f()
     revisits: bool | None = _f()  # null: only with front_end.local_map_scans 0
     calibrate_odometry: bool = _f()
+    # null: the other matching model's front end as a further chain; []: one chain
+    extra_chain_models: list[str] | None = _f(each=one_of("decay_rate", "endpoint"))
 
 
 @dataclass

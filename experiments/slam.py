@@ -153,14 +153,20 @@ def _error_budget(base, odo, gt, scfg) -> dict:
     """What limits the decay-rate pose graph: its ATE (m) re-solved with one input taken
     from the corrected poses: the loop closures' relative poses, the front end's
     increments, or only its failed increments (off by more than ``OFF_XY_M`` or
-    ``OFF_YAW_RAD``), and the median errors of the increments and loops (m). The
-    reference's own errors make these lower bounds, not estimates."""
+    ``OFF_YAW_RAD``), and the median errors of the increments and loops (m). Further
+    front ends' chains (``pose_graph.extra_chain_models``) stay as run. The reference's
+    own errors make these lower bounds, not estimates."""
     between, compose = slam._front_end.between_np, slam._front_end.compose_np
     fe, loops, rv = base.front_end_poses, base.loops, base.revisits
 
     def ate(front_poses, lp=loops):
         pg = slam.front_end_pose_graph(
-            front_poses, odo, lp, scfg, rv if scfg.uses_revisits else None
+            front_poses,
+            odo,
+            lp,
+            scfg,
+            rv if scfg.uses_revisits else None,
+            base.extra_front_end_poses,
         )
         return absolute_trajectory_error(np.asarray(pg.poses), gt).rmse_m
 
@@ -279,6 +285,9 @@ def _run_log(cfg, name, seed, out, front, loops, back, multi):
         revisits=cfg.pose_graph.revisits,
         loop_rounds=cfg.loops.rounds,
         calibrate_odometry=cfg.pose_graph.calibrate_odometry,
+        extra_chain_models=None
+        if cfg.pose_graph.extra_chain_models is None
+        else tuple(cfg.pose_graph.extra_chain_models),
     )
     if dr:
         # the front end, loops and pose graph once; each back end from the pose graph
@@ -300,6 +309,27 @@ def _run_log(cfg, name, seed, out, front, loops, back, multi):
                 if base.odometry_calibration is None
                 else dataclasses.asdict(base.odometry_calibration),
                 "error_budget": _error_budget(base, base.odometry, gt, scfg),
+                # further front ends (pose_graph.extra_chain_models): their own ATE, and
+                # the pose graph without them on the same loops, for comparison
+                "extra_chain_models": list(scfg.chain_models),
+                "seconds_extra_front_ends": base.seconds["extra_front_ends"],
+                "extra_front_end_ate_rmse_m": [
+                    absolute_trajectory_error(p, gt).rmse_m for p in base.extra_front_end_poses
+                ],
+                "pose_graph_one_chain_ate_rmse_m": None
+                if not base.extra_front_end_poses
+                else absolute_trajectory_error(
+                    np.asarray(
+                        slam.front_end_pose_graph(
+                            base.front_end_poses,
+                            base.odometry,
+                            base.loops,
+                            scfg,
+                            base.revisits if scfg.uses_revisits else None,
+                        ).poses
+                    ),
+                    gt,
+                ).rmse_m,
             }
             # the back ends' odometry factors: the pose graph's odometry
             b_inc = slam._front_end.between_np(base.odometry[:-1], base.odometry[1:])
@@ -344,9 +374,9 @@ def _run_log(cfg, name, seed, out, front, loops, back, multi):
         # length whatever grazing_cells says (slam.grid_map)
         ep_front = dataclasses.replace(front, model="endpoint")
         try:
-            ep = slam.run_slam(
-                ranges, az, odo, dataclasses.replace(scfg, front=ep_front), progress=True
-            )
+            # a baseline: the endpoint model alone (no further chain)
+            ep_cfg = dataclasses.replace(scfg, front=ep_front, extra_chain_models=())
+            ep = slam.run_slam(ranges, az, odo, ep_cfg, progress=True)
             info["endpoint"] = {
                 "n_loops": int(len(ep.loops.edges)),
                 "n_revisits": int(len(ep.revisits.edges)),

@@ -96,6 +96,11 @@ def test_slam_outputs(office_slam, office_log):
     assert ate_fe < 0.075 and ate < ate_odo, (ate_fe, ate, ate_odo)
     summary = json.loads((out / "slam.json").read_text())
     assert summary["n_scans"] == N_SCANS and summary["odometry"] == "the log's"
+    # the default further chain: an endpoint front end beside the decay-rate one
+    assert summary["extra_chain_models"] == ["endpoint"]
+    _, fe_ep = _poses_of_tum(out / "front_end_endpoint.tum")
+    assert fe_ep.shape == fe.shape and np.abs(fe_ep - fe).max() > 1e-6
+    assert absolute_trajectory_error(fe_ep, truth).rmse_m < ate_odo
     # the log's largest reading (a wall, 18.98 m) reads as its no-return value, so the
     # usable range (18.60 m) is below the 20 m default and caps the front end
     usable = load_carmen(office_log[0]).usable_range_m
@@ -238,6 +243,30 @@ def test_slam_without_odometry_calibration(office_log, tmp_path):
     np.testing.assert_allclose(est, ref.poses, atol=1e-9)
     assert ref.odometry_calibration is None
     np.testing.assert_allclose(ref.odometry, log.odometry[:12])
+
+
+@pytest.mark.slow  # ~20 s: SLAM of 12 scans
+def test_slam_without_extra_chains(office_log, tmp_path):
+    """``--extra-chains none``: one front end, and the estimate is
+    :func:`lidarjax.slam.run_slam`'s with ``extra_chain_models=()``."""
+    from lidarjax import slam
+
+    path = office_log[0]
+    out = tmp_path / "n"
+    args = ["slam", str(path), "-o", str(out), "--no-progress", "--scans", "0:12"]
+    assert main([*args, "--extra-chains", "none"]) == 0
+    assert json.loads((out / "slam.json").read_text())["extra_chain_models"] == []
+    assert not list(out.glob("front_end_*.tum"))
+    log = load_carmen(path)
+    cap = log.usable_range_m
+    front = slam.FrontEndConfig(range_cap_m=cap, window_m=cap + 2.0)
+    cfg = slam.SlamConfig(front=front, back_end="none", extra_chain_models=())
+    ref = slam.run_slam(
+        np.minimum(log.ranges_m[:12], cap), log.azimuths_rad, log.odometry[:12], cfg
+    )
+    _, est = _poses_of_tum(out / "trajectory.tum")
+    np.testing.assert_allclose(est, ref.poses, atol=1e-9)
+    assert ref.extra_front_end_poses == ()
 
 
 @pytest.mark.slow  # ~20 s: SLAM of 12 scans
@@ -416,6 +445,8 @@ def test_slam_odometry_choice(office_log, capsys):
         (["--scans", "3:4"], "--scans", "at least 2"),
         (["--model", "icp"], "--model", "invalid choice"),
         (["--back-end", "gtsam"], "--back-end", "invalid choice"),
+        (["--extra-chains", "icp"], "--extra-chains", "comma-separated"),
+        (["--extra-chains", "endpoint,,"], "--extra-chains", "comma-separated"),
     ],
 )
 def test_slam_bad_input(office_log, tmp_path, capsys, extra, argument, words):

@@ -234,6 +234,12 @@ VALUE_ERRORS = [
     ("slam", ["loops.scene_margin=-1"], "loops.scene_margin = -1", ">= 0"),
     ("slam", ["loops.scene_samples=-1"], "loops.scene_samples = -1", ">= 0"),
     ("slam", ["loops.far_radius_m=-1"], "loops.far_radius_m = -1", ">= 0"),
+    (
+        "slam",
+        ["pose_graph.extra_chain_models=[endpoint,icp]"],
+        "pose_graph.extra_chain_models[1] = 'icp'",
+        "must be one of",
+    ),
     ("slam", ["seeds=[0,1,0]"], "seeds = [0, 1, 0]", "must not repeat"),
     ("slam", ["seeds=[]"], "seeds = []", "must not be empty"),
     ("slam", ["seeds=[0,-2]"], "seeds[1] = -2", ">= 0"),

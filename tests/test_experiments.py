@@ -576,6 +576,12 @@ def test_slam_small(tmp_path):
     assert abs(back["log_likelihood_per_ray"] - ref["log_likelihood_per_ray"]) < 0.01
     assert per["icp_gtsam"]["ate_rmse_m"] < per["odometry"]["ate_rmse_m"]
     assert per["decay_rate_joint"]["front_end_scans_per_s"] > 0
+    # the default further chain: an endpoint front end, and the graph without it
+    pg = per["decay_rate_pose_graph"]
+    assert pg["extra_chain_models"] == ["endpoint"] and pg["seconds_extra_front_ends"] > 0
+    assert len(pg["extra_front_end_ate_rmse_m"]) == 1
+    assert np.isfinite(pg["extra_front_end_ate_rmse_m"][0])
+    assert np.isfinite(pg["pose_graph_one_chain_ate_rmse_m"])
     assert per["decay_rate_joint"]["seconds_back_end"] > 0
     for name in (
         "orebro_ground_truth.tum",
@@ -749,15 +755,17 @@ def test_slam_front_end_rate_prior_reaches_the_front_end(tmp_path, monkeypatch):
     local_map_scans`` are the run's ``FrontEndConfig`` settings (by default the ML rates
     of the last 100 scans), and ``pose_graph.revisits`` (null by default) is its
     ``SlamConfig.revisits``: the revisits only for a whole-map front end unless set;
-    ``pose_graph.calibrate_odometry`` (true by default) is ``SlamConfig.calibrate_odometry``."""
+    ``pose_graph.calibrate_odometry`` (true by default) is ``SlamConfig.calibrate_odometry``,
+    ``pose_graph.extra_chain_models`` (null by default: an endpoint chain) its
+    ``extra_chain_models``."""
     seen = []
 
     def run_slam(ranges, az, odo, cfg, *args, **kwargs):
         seen.append(cfg)
         raise RuntimeError("stop here")
 
-    for overrides, want, revisits, calibrate in (
-        ([], (0.0, 0.0, 100), False, True),
+    for overrides, want, revisits, calibrate, chains in (
+        ([], (0.0, 0.0, 100), False, True, ("endpoint",)),
         (
             [
                 "front_end.prior_hits=0.25",
@@ -767,16 +775,26 @@ def test_slam_front_end_rate_prior_reaches_the_front_end(tmp_path, monkeypatch):
             (0.25, 0.75, 12),
             False,
             True,
+            ("endpoint",),
         ),
-        (["front_end.local_map_scans=0"], (0.0, 0.0, 0), True, True),
-        (["pose_graph.revisits=true"], (0.0, 0.0, 100), True, True),
+        (["front_end.local_map_scans=0"], (0.0, 0.0, 0), True, True, ("endpoint",)),
+        (["pose_graph.revisits=true"], (0.0, 0.0, 100), True, True, ("endpoint",)),
         (
             ["front_end.local_map_scans=0", "pose_graph.revisits=false"],
             (0.0, 0.0, 0),
             False,
             True,
+            ("endpoint",),
         ),
-        (["pose_graph.calibrate_odometry=false"], (0.0, 0.0, 100), False, False),
+        (["pose_graph.calibrate_odometry=false"], (0.0, 0.0, 100), False, False, ("endpoint",)),
+        (["pose_graph.extra_chain_models=[]"], (0.0, 0.0, 100), False, True, ()),
+        (
+            ["pose_graph.extra_chain_models=[endpoint,decay_rate]"],
+            (0.0, 0.0, 100),
+            False,
+            True,
+            ("endpoint", "decay_rate"),
+        ),
     ):
         mod, run = _slam_in_process(
             tmp_path, monkeypatch, "variants=[decay_rate_pose_graph]", *overrides
@@ -788,6 +806,7 @@ def test_slam_front_end_rate_prior_reaches_the_front_end(tmp_path, monkeypatch):
         assert (got.prior_hits, got.prior_length_m, got.local_map_scans) == want
         assert seen[-1].uses_revisits is revisits
         assert seen[-1].calibrate_odometry is calibrate
+        assert seen[-1].chain_models == chains
 
 
 def test_slam_seed_summary_skips_a_failed_seed(tmp_path, monkeypatch):

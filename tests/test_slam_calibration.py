@@ -192,5 +192,6 @@ def test_run_slam_gives_the_pose_graph_the_calibrated_odometry(monkeypatch, cali
         assert r.odometry_calibration is None
         np.testing.assert_allclose(r.odometry, odo)
     # the pose graph is the one over that odometry
-    pg = front_end_pose_graph(truth, r.odometry, loops, cfg)
+    assert len(r.extra_front_end_poses) == 1  # the default endpoint chain (the same here)
+    pg = front_end_pose_graph(truth, r.odometry, loops, cfg, extra_chains=r.extra_front_end_poses)
     np.testing.assert_allclose(r.pose_graph_poses, np.asarray(pg.poses), atol=1e-9)

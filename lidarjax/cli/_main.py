@@ -332,6 +332,15 @@ def build_parser() -> argparse.ArgumentParser:
         "own revisits in the pose graph (default: 100)",
     )
     p.add_argument(
+        "--extra-chains",
+        default="auto",
+        metavar="MODELS",
+        help="further front ends whose increments join the pose graph as further robust "
+        "chains: 'auto' (default: the other matching model, endpoint beside decay-rate "
+        "and the reverse), 'none', or a comma-separated list of decay-rate, endpoint; "
+        "their trajectories are written as front_end_MODEL.tum",
+    )
+    p.add_argument(
         "--no-odometry-calibration",
         action="store_true",
         help="give the pose graph the raw odometry; by default its systematic heading "

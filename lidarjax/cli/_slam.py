@@ -44,6 +44,25 @@ ODOMETRY_SIGMAS = (
 """The :class:`lidarjax.slam.FrontEndConfig` fields ``--odometry-noise`` scales."""
 
 
+def _extra_chains(value: str) -> tuple[str, ...] | None:
+    """``--extra-chains``: None for 'auto' (SlamConfig's default: the other model), ()
+    for 'none', else the comma-separated models (as SlamConfig spells them)."""
+    v = value.strip()
+    if v == "auto":
+        return None
+    if v == "none":
+        return ()
+    models = tuple(m.strip() for m in v.split(","))
+    for m in models:
+        if m not in ("decay-rate", "endpoint"):
+            raise CliInputError(
+                "--extra-chains",
+                f"must be 'auto', 'none' or a comma-separated list of decay-rate, endpoint; "
+                f"got {value!r}",
+            )
+    return tuple(m.replace("-", "_") for m in models)
+
+
 def _range_cap(value: float | None, usable: float, ranges: np.ndarray) -> float:
     """``--range-cap``: readings at or beyond it are no-returns to the front end. At most
     the log's usable range: a reading beyond that is already a no-return, and a cap above
@@ -213,6 +232,7 @@ def cmd_slam(args) -> int:
     if local < 0:
         raise CliInputError("--local-map-scans", f"must be >= 0, got {local}")
     rpe_delta = _positive(args.rpe_delta, "--rpe-delta")
+    extra_chains = _extra_chains(args.extra_chains)
     loaded, idx = load_log_scans(args)
     log = loaded.log
     if idx.size < 2:
@@ -255,6 +275,7 @@ def cmd_slam(args) -> int:
         back_end=args.back_end,
         loop_rounds=int(args.loop_rounds),
         calibrate_odometry=not args.no_odometry_calibration,
+        extra_chain_models=extra_chains,
         # revisits=None: only with local == 0 (a local map's front end never matched two
         # visits to each other: its relative pose between them is no measurement)
     )
@@ -263,9 +284,14 @@ def cmd_slam(args) -> int:
 
     stamps, unit = _stamps(log, idx)
     files = []
+    extra_tum = {
+        f"front_end_{m.replace('_', '-')}.tum": p
+        for m, p in zip(cfg.chain_models, res.extra_front_end_poses)
+    }
     for name, p in (
         ("trajectory.tum", est),
         ("front_end.tum", res.front_end_poses),
+        *extra_tum.items(),
         ("odometry.tum", odo),
     ):
         p = np.asarray(p, float)
@@ -325,6 +351,8 @@ def cmd_slam(args) -> int:
         "resimulated": resim,
         "n_loops": int(len(res.loops.edges)),
         "n_revisits": int(len(res.revisits.edges)),
+        # further front ends, each a further robust chain of the pose graph
+        "extra_chain_models": [m.replace("_", "-") for m in cfg.chain_models],
         # the odometry's systematic heading errors, removed before the pose graph
         "odometry_calibration": None
         if res.odometry_calibration is None

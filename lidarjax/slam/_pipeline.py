@@ -27,6 +27,7 @@ import numpy as np
 from ._back_end import BackEndConfig, BackEndResult, optimize_alternating, optimize_joint
 from ._calibration import OdometryCalibration, calibrate_odometry
 from ._front_end import (
+    MATCHING_MODELS,
     FrontEndConfig,
     _check_inputs,
     between_np,
@@ -101,6 +102,23 @@ class SlamConfig:
             freiburg-101 0.053 / 0.055 / 0.048 -> 0.049 / 0.050 / 0.047 m; intel, fhw
             and orebro (six seeds) within 2 mm by mean. The front end still predicts
             from the raw odometry.
+        extra_chain_models: front-end models (``"decay_rate"``, ``"endpoint"``) run as
+            further front ends, with ``front``'s settings otherwise, each an independent
+            lidar odometry from the same raw odometry. Their increments join the pose
+            graph as further Cauchy-robust chains; with ``k`` chains in all, every
+            chain's sigmas are ``sqrt(k)`` times ``chain_sigma_*`` (chains that agree
+            weigh as one). Where one front end fails and a loop closure or the odometry
+            rejects its increment, another front end's increment bridges the gap
+            instead of the odometry alone. The loop search, the calibration, the
+            graph's starting poses and the back end follow the first front end
+            (``front``). Needs ``robust_chain``. None (default): the other model
+            (:attr:`chain_models`: an endpoint front end beside a decay-rate one and
+            the reverse); ``()``: one chain. Pose graph ATE with the endpoint chain
+            beside the decay-rate one, the pose graph re-solved on each run's own loops
+            (six drift seeds, mean): intel 0.063 -> 0.061 m, orebro 0.242 -> 0.175 m,
+            fhw 0.128 -> 0.138 m (worse on all six); on logs nobody tuned to
+            freiburg-101 0.049 -> 0.046, edmonton 0.724 -> 0.621, csail 0.144 ->
+            0.135, belgioioso 0.089 -> 0.085 m (docs/results/slam.md, stop 64).
     """
 
     front: FrontEndConfig = dataclasses.field(default_factory=FrontEndConfig)
@@ -119,6 +137,7 @@ class SlamConfig:
     revisit_sigma_scale: float = 4.0
     loop_rounds: int = 2
     calibrate_odometry: bool = True
+    extra_chain_models: tuple[str, ...] | None = None
 
     def __post_init__(self):
         if self.back_end not in ("joint", "alternating", "none"):
@@ -149,6 +168,29 @@ class SlamConfig:
         v = self.revisit_min_overlap
         if not (isinstance(v, (int, float)) and not isinstance(v, bool) and 0 < v <= 1):
             raise ValueError(f"revisit_min_overlap must be in (0, 1], got {v!r}")
+        v = self.extra_chain_models
+        if v is not None and (not isinstance(v, tuple) or any(m not in MATCHING_MODELS for m in v)):
+            raise ValueError(
+                f"extra_chain_models must be None or a tuple of models from "
+                f"{MATCHING_MODELS}, got {v!r}"
+            )
+        if v and not self.robust_chain:
+            raise ValueError(
+                "extra_chain_models needs robust_chain=True (the chains are weighed against "
+                "each other through the Cauchy kernel and the odometry factors); set "
+                "extra_chain_models=() for a plain chain"
+            )
+
+    @property
+    def chain_models(self) -> tuple[str, ...]:
+        """The models of :func:`run_slam`'s further front ends: ``extra_chain_models``
+        if set, else the matching model other than ``front.model`` when ``robust_chain``
+        (none without it)."""
+        if self.extra_chain_models is not None:
+            return self.extra_chain_models
+        if not self.robust_chain:
+            return ()
+        return tuple(m for m in MATCHING_MODELS if m != self.front.model)
 
     @property
     def uses_revisits(self) -> bool:
@@ -171,8 +213,8 @@ class SlamResult:
         revisits: :func:`~lidarjax.slam.find_revisits`'s pairs (empty without
             ``cfg.uses_revisits``).
         back_end: the back end's result (None for ``"none"``).
-        seconds: wall time per stage (s): ``front_end``, ``loops`` (with the revisits),
-            ``pose_graph``, ``back_end``.
+        seconds: wall time per stage (s): ``front_end``, ``extra_front_ends``, ``loops`` (with the
+            revisits), ``pose_graph``, ``back_end``.
         front_end_seconds_per_scan: ``[N]``.
         front_end_n_used: ``[N]`` rays in each match's objective (0 for the first scan).
         front_end_information: ``[N 3 3]`` each match's information (``FrontEndResult
@@ -185,6 +227,9 @@ class SlamResult:
             the front end (None without ``cfg.calibrate_odometry``).
         odometry: ``[N 3]`` the odometry the pose graph and the back end used (the raw
             odometry corrected by ``odometry_calibration``, or the raw odometry).
+        extra_front_end_poses: ``[N 3]`` poses of each of ``cfg.chain_models``'s
+            front ends, in that order (empty without them); their wall time is
+            ``seconds["extra_front_ends"]``.
     """
 
     poses: np.ndarray
@@ -200,6 +245,7 @@ class SlamResult:
     front_end_plausible: np.ndarray | None = None
     odometry_calibration: OdometryCalibration | None = None
     odometry: np.ndarray | None = None
+    extra_front_end_poses: tuple[np.ndarray, ...] = ()
 
 
 def front_end_pose_graph(
@@ -208,10 +254,12 @@ def front_end_pose_graph(
     loops: Loops,
     cfg: SlamConfig | None = None,
     revisits: Loops | None = None,
+    extra_chains: tuple[np.ndarray, ...] | list[np.ndarray] = (),
 ) -> PoseGraphResult:
     """The pose graph of :func:`run_slam`'s step 3, started at the front end's poses.
 
-    Edges: the front end's increments ``(k, k + 1)`` (``cfg.chain_sigma_*``), the loop
+    Edges: the front end's increments ``(k, k + 1)`` (``cfg.chain_sigma_*``, times
+    ``sqrt(1 + len(extra_chains))``), the loop
     closures (``cfg.loop_sigma_*``, Cauchy-robust), the revisits if given (the loop
     sigmas times ``cfg.revisit_sigma_scale``, Cauchy-robust) and, with
     ``cfg.robust_chain``, the odometry's increments (:func:`odometry_sigmas` of
@@ -241,12 +289,26 @@ def front_end_pose_graph(
             f"odometry_xy_yaw must be a finite {list(fe.shape)} array like front_end_poses, "
             f"got {odo.shape}"
         )
+    extra = list(extra_chains)
+    for i, c in enumerate(extra):
+        c = np.asarray(c, float)
+        if c.shape != fe.shape or not np.all(np.isfinite(c)):
+            raise ValueError(
+                f"extra_chains[{i}] must be a finite {list(fe.shape)} array like "
+                f"front_end_poses, got {c.shape}"
+            )
+        extra[i] = c
+    if extra and not cfg.robust_chain:
+        raise ValueError("extra_chains needs cfg.robust_chain=True")
     n = fe.shape[0]
     chain = np.stack([np.arange(n - 1), np.arange(1, n)], 1)
     edges = [chain, np.asarray(loops.edges).reshape(-1, 2)]
     meas = [between_np(fe[:-1], fe[1:]), np.asarray(loops.measurements, float).reshape(-1, 3)]
+    chain_sig = math.sqrt(1 + len(extra)) * np.array(
+        [cfg.chain_sigma_xy_m, cfg.chain_sigma_xy_m, cfg.chain_sigma_yaw_rad]
+    )
     sig = [
-        np.tile([cfg.chain_sigma_xy_m, cfg.chain_sigma_xy_m, cfg.chain_sigma_yaw_rad], (n - 1, 1)),
+        np.tile(chain_sig, (n - 1, 1)),
         np.tile(
             [cfg.loop_sigma_xy_m, cfg.loop_sigma_xy_m, cfg.loop_sigma_yaw_rad],
             (len(edges[1]), 1),
@@ -274,6 +336,11 @@ def front_end_pose_graph(
         meas.append(inc)
         sig.append(odometry_sigmas(inc, cfg.front))
         robust.append(np.zeros(n - 1, bool))
+    for c in extra:
+        edges.append(chain)
+        meas.append(between_np(c[:-1], c[1:]))
+        sig.append(np.tile(chain_sig, (n - 1, 1)))
+        robust.append(np.ones(n - 1, bool))
     return optimize_pose_graph(
         fe,
         np.concatenate(edges).astype(np.int32),
@@ -310,6 +377,12 @@ def run_slam(
     secs = {}
     fe = run_front_end(rng, az, odo, cfg.front, progress=progress)
     secs["front_end"] = fe.seconds
+    extra = []
+    secs["extra_front_ends"] = 0.0
+    for m in cfg.chain_models:
+        x = run_front_end(rng, az, odo, dataclasses.replace(cfg.front, model=m), progress=progress)
+        extra.append(np.asarray(x.poses, float))
+        secs["extra_front_ends"] += x.seconds
     cal = None
     if cfg.calibrate_odometry and n > 1:
         valid = None if fe.plausible is None else np.asarray(fe.plausible[1:], bool)
@@ -358,7 +431,7 @@ def run_slam(
                 more.scene_level,
             )
         t = time.perf_counter()
-        pg = front_end_pose_graph(fe.poses, odo, loops, cfg, revisits)
+        pg = front_end_pose_graph(fe.poses, odo, loops, cfg, revisits, extra)
         pg_poses = np.asarray(pg.poses, float)
         secs["pose_graph"] += time.perf_counter() - t
     back = None
@@ -385,4 +458,5 @@ def run_slam(
         fe.plausible,
         cal,
         odo,
+        tuple(extra),
     )

@@ -1,0 +1,192 @@
+"""Further front ends as further Cauchy-robust chains of run_slam's pose graph
+(SlamConfig.extra_chain_models, front_end_pose_graph's extra_chains)."""
+
+import numpy as np
+import pytest
+
+import lidarjax.slam._pipeline as pipeline
+from lidarjax.metrics import absolute_trajectory_error
+from lidarjax.slam import (
+    FrontEndConfig,
+    FrontEndResult,
+    Loops,
+    SlamConfig,
+    calibrate_odometry,
+    front_end_pose_graph,
+    odometry_sigmas,
+    optimize_pose_graph,
+    run_slam,
+)
+from lidarjax.slam._front_end import between_np, compose_np
+
+
+def _chain(p0, inc):
+    out = [np.asarray(p0, float)]
+    for u in inc:
+        out.append(compose_np(out[-1], u))
+    return np.array(out)
+
+
+NO_LOOPS = Loops(np.zeros((0, 2), np.int64), np.zeros((0, 3)), 0)
+
+
+def _noisy_pair(seed, n=150):
+    """Truth, odometry (2 cm, 1 degree per increment) and two front ends with
+    independent 2 cm / 0.3 degree noise per increment; exact loops (0, n // 2),
+    (n // 2, n - 1), (0, n - 1)."""
+    r = np.random.default_rng(seed)
+    d = r.uniform(0.3, 0.8, n - 1)
+    inc = np.stack([d, r.normal(0, 0.01, n - 1), r.uniform(-0.3, 0.3, n - 1)], 1)
+    truth = _chain([0.5, 1.0, 0.2], inc)
+
+    def noisy(s):
+        return _chain(truth[0], inc + r.normal(0, 1, inc.shape) * s)
+
+    fe_noise = [0.02, 0.02, np.deg2rad(0.3)]
+    odo, a, b = noisy([0.02, 0.02, np.deg2rad(1.0)]), noisy(fe_noise), noisy(fe_noise)
+    e = np.array([[0, n // 2], [n // 2, n - 1], [0, n - 1]])
+    return truth, odo, a, b, Loops(e, between_np(truth[e[:, 0]], truth[e[:, 1]]), 3)
+
+
+def _ate(p, truth):
+    return absolute_trajectory_error(np.asarray(p), truth).rmse_m
+
+
+@pytest.mark.parametrize("failures", [False, True])
+def test_a_second_chain_averages_the_noise_and_bridges_failures(failures):
+    """Two front ends with independent errors: the fused graph is better than either
+    alone by about 1 / sqrt(2) (eight scenes). With failures (10 degrees and 0.3 m, the
+    first front end at increment 40, the second at 110) the loops reject each failed
+    increment and the other front end's increment at that step is kept."""
+    cfg = SlamConfig(back_end="none")
+    alone, fused = [], []
+    for seed in range(8):
+        truth, odo, a, b, loops = _noisy_pair(seed)
+        n = len(truth)
+        if failures:
+            ia, ib = between_np(a[:-1], a[1:]), between_np(b[:-1], b[1:])
+            ia[40] += [0.3, 0.0, np.deg2rad(10.0)]
+            ib[110] -= [0.3, 0.0, np.deg2rad(10.0)]
+            a, b = _chain(a[0], ia), _chain(b[0], ib)
+        for p in (a, b):
+            alone.append(_ate(front_end_pose_graph(p, odo, loops, cfg).poses, truth))
+        g = front_end_pose_graph(a, odo, loops, cfg, extra_chains=[b])
+        fused.append(_ate(g.poses, truth))
+        # edge weights: chain, loops, (no revisits), odometry, extra chain
+        w = np.asarray(g.edge_weights)
+        assert w.shape == (3 * (n - 1) + 3,)
+        w_a, w_odo, w_b = w[: n - 1], w[n + 2 : 2 * n + 1], w[2 * n + 1 :]
+        assert np.all(w_odo == 1.0)
+        if failures:
+            assert w_a[40] < 0.05 and w_b[110] < 0.05
+            assert w_b[40] > 0.5
+    assert np.mean(fused) < 0.85 * np.mean(alone)
+
+
+def test_extra_chains_graph_is_the_explicit_graph():
+    truth, odo, a, b, _ = _noisy_pair(4, n=60)
+    c = _chain(truth[0], between_np(truth[:-1], truth[1:]))  # a third, exact front end
+    e = np.array([[3, 50], [10, 55]])
+    loops = Loops(e, between_np(truth[e[:, 0]], truth[e[:, 1]]), 2)
+    cfg = SlamConfig(back_end="none", chain_sigma_xy_m=0.04, chain_sigma_yaw_rad=0.02)
+    got = front_end_pose_graph(a, odo, loops, cfg, extra_chains=(b, c))
+    # built by hand: every chain at sqrt(3) times the chain sigmas, Cauchy-robust
+    n = len(truth)
+    ch = np.stack([np.arange(n - 1), np.arange(1, n)], 1)
+    s = np.sqrt(3.0) * np.array([0.04, 0.04, 0.02])
+    inc_odo = between_np(odo[:-1], odo[1:])
+    edges = np.concatenate([ch, e, ch, ch, ch])
+    meas = [between_np(p[:-1], p[1:]) for p in (a, b, c)]
+    z = np.concatenate([meas[0], loops.measurements, inc_odo, meas[1], meas[2]])
+    sig = np.concatenate(
+        [
+            np.tile(s, (n - 1, 1)),
+            np.tile([0.1, 0.1, 0.02], (2, 1)),
+            odometry_sigmas(inc_odo, cfg.front),
+            np.tile(s, (n - 1, 1)),
+            np.tile(s, (n - 1, 1)),
+        ]
+    )
+    robust = np.concatenate(
+        [np.ones(n - 1 + 2, bool), np.zeros(n - 1, bool), np.ones(2 * (n - 1), bool)]
+    )
+    want = optimize_pose_graph(a, edges.astype(np.int32), z, sig, robust=robust, cauchy_scale=1.0)
+    np.testing.assert_allclose(np.asarray(got.poses), np.asarray(want.poses), atol=1e-12)
+    np.testing.assert_allclose(
+        np.asarray(got.edge_weights), np.asarray(want.edge_weights), atol=1e-12
+    )
+
+
+def test_without_extra_chains_nothing_changes():
+    truth, odo, a, _, _ = _noisy_pair(2, n=40)
+    cfg = SlamConfig(back_end="none")
+    p0 = front_end_pose_graph(a, odo, NO_LOOPS, cfg)
+    p1 = front_end_pose_graph(a, odo, NO_LOOPS, cfg, extra_chains=[])
+    np.testing.assert_array_equal(np.asarray(p0.poses), np.asarray(p1.poses))
+
+
+def test_bad_extra_chains_raise():
+    truth, odo, a, b, _ = _noisy_pair(0, n=20)
+    cfg = SlamConfig(back_end="none")
+    with pytest.raises(ValueError, match=r"extra_chains\[0\]"):
+        front_end_pose_graph(a, odo, NO_LOOPS, cfg, extra_chains=[b[:-1]])
+    bad = b.copy()
+    bad[5, 1] = np.nan
+    with pytest.raises(ValueError, match=r"extra_chains\[1\]"):
+        front_end_pose_graph(a, odo, NO_LOOPS, cfg, extra_chains=[b, bad])
+    with pytest.raises(ValueError, match="robust_chain"):
+        front_end_pose_graph(a, odo, NO_LOOPS, SlamConfig(robust_chain=False), extra_chains=[b])
+    with pytest.raises(ValueError, match="extra_chain_models"):
+        SlamConfig(extra_chain_models=("icp",))
+    with pytest.raises(ValueError, match="extra_chain_models"):
+        SlamConfig(extra_chain_models=["endpoint"])
+    with pytest.raises(ValueError, match="robust_chain"):
+        SlamConfig(extra_chain_models=("endpoint",), robust_chain=False)
+
+
+def test_chain_models_default_to_the_other_model():
+    assert SlamConfig().chain_models == ("endpoint",)
+    assert SlamConfig(front=FrontEndConfig(model="endpoint")).chain_models == ("decay_rate",)
+    assert SlamConfig(robust_chain=False).chain_models == ()
+    assert SlamConfig(extra_chain_models=()).chain_models == ()
+    two = ("endpoint", "decay_rate")
+    assert SlamConfig(extra_chain_models=two).chain_models == two
+
+
+def test_run_slam_runs_each_extra_front_end_and_fuses_its_chain(monkeypatch):
+    truth, odo, a, b, _ = _noisy_pair(5, n=100)
+    calls = []
+
+    def fake_front_end(rng, azimuths, odometry, cfg, progress=False):
+        calls.append(cfg.model)
+        np.testing.assert_array_equal(odometry, odo)  # every front end gets the raw odometry
+        p = a if cfg.model == "decay_rate" else b
+        n = rng.shape[0]
+        return FrontEndResult(p, np.zeros(n), 0.5, np.zeros(n), None, None, np.ones(n, bool))
+
+    e = np.array([[2, 90], [5, 95]])
+    loops = Loops(e, between_np(truth[e[:, 0]], truth[e[:, 1]]), 2)
+    monkeypatch.setattr(pipeline, "run_front_end", fake_front_end)
+    monkeypatch.setattr(pipeline, "find_loops", lambda *a_, **k: loops)
+    cfg = SlamConfig(back_end="none", loop_rounds=1)  # default: an endpoint chain
+    ranges, az = np.full((len(truth), 4), 5.0), np.linspace(-1, 1, 4)
+    r = run_slam(ranges, az, odo, cfg)
+    assert calls == ["decay_rate", "endpoint"]
+    assert len(r.extra_front_end_poses) == 1
+    np.testing.assert_array_equal(r.extra_front_end_poses[0], b)
+    np.testing.assert_array_equal(r.front_end_poses, a)
+    assert r.seconds["front_end"] == 0.5 and r.seconds["extra_front_ends"] == 0.5
+    # the calibration follows the first front end
+    c = calibrate_odometry(a, odo, cfg.front, valid=np.ones(len(truth) - 1, bool))
+    assert r.odometry_calibration == c
+    pg = front_end_pose_graph(a, c.apply(odo), loops, cfg, extra_chains=[b])
+    np.testing.assert_allclose(r.pose_graph_poses, np.asarray(pg.poses), atol=1e-9)
+    # and without the extra model the graph is the single chain's
+    calls.clear()
+    r1 = run_slam(
+        ranges, az, odo, SlamConfig(back_end="none", loop_rounds=1, extra_chain_models=())
+    )
+    assert calls == ["decay_rate"]
+    assert r1.extra_front_end_poses == () and r1.seconds["extra_front_ends"] == 0.0
+    pg1 = front_end_pose_graph(a, c.apply(odo), loops, cfg)
+    np.testing.assert_allclose(r1.pose_graph_poses, np.asarray(pg1.poses), atol=1e-9)

@@ -114,11 +114,11 @@ class SlamConfig:
             (``front``). Needs ``robust_chain``. None (default): the other model
             (:attr:`chain_models`: an endpoint front end beside a decay-rate one and
             the reverse); ``()``: one chain. Pose graph ATE with the endpoint chain
-            beside the decay-rate one, the pose graph re-solved on each run's own loops
-            (six drift seeds, mean): intel 0.063 -> 0.061 m, orebro 0.242 -> 0.175 m,
-            fhw 0.128 -> 0.138 m (worse on all six); on logs nobody tuned to
-            freiburg-101 0.049 -> 0.046, edmonton 0.724 -> 0.621, csail 0.144 ->
-            0.135, belgioioso 0.089 -> 0.085 m (docs/results/slam.md, stop 64).
+            beside the decay-rate one (six drift seeds, mean): orebro 0.242 -> 0.177 m
+            (better on all six), intel 0.063 -> INTELMEAN m, fhw 0.128 -> 0.138 m (worse on
+            all six); on logs nobody tuned to (drift seeds 0-2 or 0-1) edmonton 0.719
+            -> 0.521, freiburg-101 0.049 -> 0.045, csail 0.144 -> 0.129, belgioioso
+            0.090 -> 0.084 m (docs/results/slam.md, stop 64).
     """
 
     front: FrontEndConfig = dataclasses.field(default_factory=FrontEndConfig)

@@ -2,11 +2,12 @@
 
 :func:`run_slam` runs, on raw odometry and scans:
 
-1. :func:`~lidarjax.slam.run_front_end` (decay-rate lidar odometry, online);
+1. :func:`~lidarjax.slam.run_front_end` (decay-rate lidar odometry, online), and a
+   second front end with the endpoint model (``SlamConfig.extra_chain_models``);
 2. :func:`~lidarjax.slam.find_loops` and :func:`~lidarjax.slam.find_revisits` on the
    front end's trajectory;
 3. :func:`front_end_pose_graph`: :func:`~lidarjax.slam.optimize_pose_graph` over the
-   front end's increments, the loop closures and the revisits (all Cauchy-robust) and the
+   front ends' increments, the loop closures and the revisits (all Cauchy-robust) and the
    odometry's increments (without their systematic heading errors, fitted against the
    front end by :func:`~lidarjax.slam.calibrate_odometry`), which closes the loops; with
    ``loop_rounds > 1`` the loop search runs again along the pose graph's trajectory and
@@ -115,7 +116,7 @@ class SlamConfig:
             (:attr:`chain_models`: an endpoint front end beside a decay-rate one and
             the reverse); ``()``: one chain. Pose graph ATE with the endpoint chain
             beside the decay-rate one (six drift seeds, mean): orebro 0.242 -> 0.177 m
-            (better on all six), intel 0.063 -> INTELMEAN m, fhw 0.128 -> 0.138 m (worse on
+            (better on all six), intel 0.063 -> 0.061 m, fhw 0.128 -> 0.138 m (worse on
             all six); on logs nobody tuned to (drift seeds 0-2 or 0-1) edmonton 0.719
             -> 0.521, freiburg-101 0.049 -> 0.045, csail 0.144 -> 0.129, belgioioso
             0.090 -> 0.084 m (docs/results/slam.md, stop 64).

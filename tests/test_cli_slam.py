@@ -447,6 +447,7 @@ def test_slam_odometry_choice(office_log, capsys):
         (["--back-end", "gtsam"], "--back-end", "invalid choice"),
         (["--extra-chains", "icp"], "--extra-chains", "comma-separated"),
         (["--extra-chains", "endpoint,,"], "--extra-chains", "comma-separated"),
+        (["--extra-chains", "endpoint,endpoint"], "--extra-chains", "must not repeat"),
     ],
 )
 def test_slam_bad_input(office_log, tmp_path, capsys, extra, argument, words):

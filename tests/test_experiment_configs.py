@@ -240,6 +240,12 @@ VALUE_ERRORS = [
         "pose_graph.extra_chain_models[1] = 'icp'",
         "must be one of",
     ),
+    (
+        "slam",
+        ["pose_graph.extra_chain_models=[endpoint,endpoint]"],
+        "pose_graph.extra_chain_models = ['endpoint', 'endpoint']",
+        "must not repeat",
+    ),
     ("slam", ["seeds=[0,1,0]"], "seeds = [0, 1, 0]", "must not repeat"),
     ("slam", ["seeds=[]"], "seeds = []", "must not be empty"),
     ("slam", ["seeds=[0,-2]"], "seeds[1] = -2", ">= 0"),

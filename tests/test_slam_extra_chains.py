@@ -140,6 +140,8 @@ def test_bad_extra_chains_raise():
         SlamConfig(extra_chain_models=("icp",))
     with pytest.raises(ValueError, match="extra_chain_models"):
         SlamConfig(extra_chain_models=["endpoint"])
+    with pytest.raises(ValueError, match="must not repeat"):
+        SlamConfig(extra_chain_models=("endpoint", "endpoint"))
     with pytest.raises(ValueError, match="robust_chain"):
         SlamConfig(extra_chain_models=("endpoint",), robust_chain=False)
 

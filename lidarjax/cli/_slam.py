@@ -60,6 +60,8 @@ def _extra_chains(value: str) -> tuple[str, ...] | None:
                 f"must be 'auto', 'none' or a comma-separated list of decay-rate, endpoint; "
                 f"got {value!r}",
             )
+    if len(set(models)) != len(models):
+        raise CliInputError("--extra-chains", f"must not repeat a model, got {value!r}")
     return tuple(m.replace("-", "_") for m in models)
 
 

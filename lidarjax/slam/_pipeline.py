@@ -175,6 +175,8 @@ class SlamConfig:
                 f"extra_chain_models must be None or a tuple of models from "
                 f"{MATCHING_MODELS}, got {v!r}"
             )
+        if v is not None and len(set(v)) != len(v):
+            raise ValueError(f"extra_chain_models must not repeat a model, got {v!r}")
         if v and not self.robust_chain:
             raise ValueError(
                 "extra_chain_models needs robust_chain=True (the chains are weighed against "

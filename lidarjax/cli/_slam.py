@@ -54,10 +54,10 @@ def _extra_chains(value: str) -> tuple[str, ...] | None:
         return ()
     models = tuple(m.strip() for m in v.split(","))
     for m in models:
-        if m not in ("decay-rate", "endpoint"):
+        if m not in MATCHING:
             raise CliInputError(
                 "--extra-chains",
-                f"must be 'auto', 'none' or a comma-separated list of decay-rate, endpoint; "
+                f"must be 'auto', 'none' or a comma-separated list of {', '.join(MATCHING)}; "
                 f"got {value!r}",
             )
     if len(set(models)) != len(models):

@@ -299,6 +299,13 @@ def _run_log(cfg, name, seed, out, front, loops, back, multi):
                 "front_end_rtf": None if rate is None else fe_rate / rate,
                 "n_loops": int(len(base.loops.edges)),
                 "n_revisits": int(len(base.revisits.edges)),
+                # what the final pose graph took for outliers (weight below
+                # slam.REJECTED_WEIGHT): loop closures, and each front end's increments
+                "loops_rejected": int(np.sum(base.loop_weights < slam.REJECTED_WEIGHT)),
+                "increments_rejected": {
+                    m: int(np.sum(row < slam.REJECTED_WEIGHT))
+                    for m, row in zip((front.model, *scfg.chain_models), base.chain_weights)
+                },
                 "seconds_front_end": base.seconds["front_end"],
                 "seconds_loops": base.seconds["loops"],
                 "seconds_pose_graph": base.seconds["pose_graph"],

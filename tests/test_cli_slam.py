@@ -113,13 +113,26 @@ def test_slam_outputs(office_slam, office_log):
     for f in ("slam.png", "errors.png", "map.yaml", "map.pgm", "loops.csv"):
         assert (out / f).stat().st_size > 0, f
     header, *rows = (out / "loops.csv").read_text().splitlines()
-    assert header == "kind,scan_from,scan_to,dx_m,dy_m,dyaw_rad"
+    assert header == "kind,scan_from,scan_to,dx_m,dy_m,dyaw_rad,weight"
     assert len(rows) == summary["n_loops"] + summary["n_revisits"]
+    weights = np.array([float(r.split(",")[-1]) for r in rows])
+    assert np.all((weights > 0) & (weights <= 1))
+    verdicts = summary["pose_graph"]
+    assert verdicts["rejected_weight"] == 0.1 and verdicts["cost"] > 0
+    kinds = [r.split(",")[0] for r in rows]
+    assert verdicts["loops_rejected"] == sum(
+        k == "loop" and w < 0.1 for k, w in zip(kinds, weights)
+    )
     # one row per scan of the front end's matches; the first scan has none
     fe_rows = np.genfromtxt(out / "front_end.csv", delimiter=",", names=True)
     assert fe_rows.dtype.names == (
-        "scan", "rays_used", "sd_x_m", "sd_y_m", "sd_yaw_rad", "passed_gate", "seconds"
+        "scan", "rays_used", "sd_x_m", "sd_y_m", "sd_yaw_rad", "passed_gate", "seconds",
+        "graph_weight", "graph_weight_endpoint",
     )  # fmt: skip
+    for col, model in (("graph_weight", "decay-rate"), ("graph_weight_endpoint", "endpoint")):
+        gw = fe_rows[col]
+        assert np.isnan(gw[0]) and np.all((gw[1:] > 0) & (gw[1:] <= 1)), col
+        assert verdicts["increments_rejected"][model] == np.sum(gw[1:] < 0.1)
     np.testing.assert_array_equal(fe_rows["scan"], np.arange(N_SCANS))
     assert fe_rows["rays_used"][0] == 0 and np.isnan(fe_rows["sd_x_m"][0])
     assert np.all(fe_rows["rays_used"][1:] > 0.5 * N_BEAMS)
@@ -156,6 +169,16 @@ def test_slam_is_run_slam_on_the_log(office_slam, office_log):
     cov = np.linalg.inv(ref.front_end_information[1:])
     for c, name in enumerate(("sd_x_m", "sd_y_m", "sd_yaw_rad")):
         np.testing.assert_allclose(rows[name][1:], np.sqrt(cov[:, c, c]), rtol=1e-5)
+    # the final pose graph's weights: of each front end's increments and of the loops
+    np.testing.assert_allclose(rows["graph_weight"][1:], ref.chain_weights[0], rtol=1e-5)
+    np.testing.assert_allclose(rows["graph_weight_endpoint"][1:], ref.chain_weights[1], rtol=1e-5)
+    _, *loop_rows = (out / "loops.csv").read_text().splitlines()
+    lw = np.array([float(r.split(",")[-1]) for r in loop_rows])
+    np.testing.assert_allclose(
+        lw, np.concatenate([ref.loop_weights, ref.revisit_weights]), rtol=1e-5
+    )
+    pg = json.loads((out / "slam.json").read_text())["pose_graph"]
+    assert pg["cost"] == pytest.approx(ref.pose_graph_cost, rel=1e-9)
 
 
 @pytest.mark.slow  # ~60 s: SLAM of 12 scans and the alternating back end
@@ -482,3 +505,30 @@ def test_slam_choices_follow_the_library():
         slam.SlamConfig(back_end=back_end)  # each one the library takes
     with pytest.raises(ValueError, match="back_end"):
         slam.SlamConfig(back_end="gtsam")
+
+
+def test_slam_plot_marks_rejected_loops():
+    """slam.png's loop closures: kept ones blue, those below REJECTED_WEIGHT red."""
+    import types
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.collections import LineCollection
+
+    from lidarjax.cli._slam import _plot_loops
+    from lidarjax.slam import Loops
+
+    est = np.column_stack([np.arange(10.0), np.zeros(10), np.zeros(10)])
+    e = np.array([[0, 5], [1, 6], [2, 9]])
+    res = types.SimpleNamespace(
+        loops=Loops(e, np.zeros((3, 3)), 3), loop_weights=np.array([0.9, 0.05, 0.6])
+    )
+    fig, ax = plt.subplots()
+    _plot_loops(ax, est, res)
+    cols = [c for c in ax.collections if isinstance(c, LineCollection)]
+    assert [len(c.get_segments()) for c in cols] == [2, 1]
+    np.testing.assert_allclose(cols[1].get_segments()[0], [[1, 0], [6, 0]])
+    assert cols[1].get_label() == "loop closure the pose graph rejected"
+    plt.close(fig)

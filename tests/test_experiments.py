@@ -582,6 +582,10 @@ def test_slam_small(tmp_path):
     assert len(pg["extra_front_end_ate_rmse_m"]) == 1
     assert np.isfinite(pg["extra_front_end_ate_rmse_m"][0])
     assert np.isfinite(pg["pose_graph_one_chain_ate_rmse_m"])
+    # what the final pose graph rejected: counts per front end, at most every increment
+    assert set(pg["increments_rejected"]) == {"decay_rate", "endpoint"}
+    assert all(0 <= c <= 39 for c in pg["increments_rejected"].values())
+    assert 0 <= pg["loops_rejected"] <= pg["n_loops"]
     assert per["decay_rate_joint"]["seconds_back_end"] > 0
     for name in (
         "orebro_ground_truth.tum",

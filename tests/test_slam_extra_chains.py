@@ -192,3 +192,64 @@ def test_run_slam_runs_each_extra_front_end_and_fuses_its_chain(monkeypatch):
     assert r1.extra_front_end_poses == () and r1.seconds["extra_front_ends"] == 0.0
     pg1 = front_end_pose_graph(a, c.apply(odo), loops, cfg)
     np.testing.assert_allclose(r1.pose_graph_poses, np.asarray(pg1.poses), atol=1e-9)
+
+
+def _fake_run_slam(monkeypatch, a, b, loops, cfg, odo):
+    """run_slam with front ends returning ``a`` (decay rate) and ``b`` (endpoint) and a
+    loop search returning ``loops``."""
+
+    def fake_front_end(rng, azimuths, odometry, fcfg, progress=False):
+        p = a if fcfg.model == "decay_rate" else b
+        n = rng.shape[0]
+        return FrontEndResult(p, np.zeros(n), 0.5, np.zeros(n), None, None, np.ones(n, bool))
+
+    monkeypatch.setattr(pipeline, "run_front_end", fake_front_end)
+    monkeypatch.setattr(pipeline, "find_loops", lambda *a_, **k: loops)
+    ranges, az = np.full((len(a), 4), 5.0), np.linspace(-1, 1, 4)
+    return run_slam(ranges, az, odo, cfg)
+
+
+def test_run_slam_reports_what_the_pose_graph_rejected(monkeypatch):
+    """SlamResult's loop, revisit and chain weights are the final pose graph's edge
+    weights, split by factor; a wrong loop closure and a failed increment of the first
+    front end fall below REJECTED_WEIGHT, the other front end's increment at that step
+    and the right loops stay near 1."""
+    from lidarjax.slam import REJECTED_WEIGHT
+
+    truth, odo, a, b, _ = _noisy_pair(7, n=100)
+    ia = between_np(a[:-1], a[1:])
+    ia[40] += [0.3, 0.0, np.deg2rad(10.0)]  # a failed match of the first front end
+    a = _chain(a[0], ia)
+    e = np.array([[2, 90], [5, 95], [0, 50], [50, 99], [20, 70]])
+    z = between_np(truth[e[:, 0]], truth[e[:, 1]])
+    z[4, :2] += [2.0, -1.0]  # an aliased place: 2.2 m off
+    loops = Loops(e, z, 5)
+    cfg = SlamConfig(back_end="none", loop_rounds=1)
+    r = _fake_run_slam(monkeypatch, a, b, loops, cfg, odo)
+    # the same graph re-solved: its weights, split as front_end_pose_graph orders them
+    pg = front_end_pose_graph(a, r.odometry, loops, cfg, revisits=r.revisits, extra_chains=[b])
+    w = np.asarray(pg.edge_weights)
+    m = len(truth) - 1
+    assert r.loop_weights.shape == (5,) and r.revisit_weights.shape == (0,)
+    assert r.chain_weights.shape == (2, m)
+    np.testing.assert_allclose(r.loop_weights, w[m : m + 5], atol=1e-12)
+    np.testing.assert_allclose(r.chain_weights[0], w[:m], atol=1e-12)
+    np.testing.assert_allclose(r.chain_weights[1], w[-m:], atol=1e-12)
+    assert r.pose_graph_cost == pytest.approx(float(pg.cost), rel=1e-12)
+    # the verdicts
+    assert r.loop_weights[4] < REJECTED_WEIGHT and np.all(r.loop_weights[:4] > 0.5)
+    assert r.chain_weights[0, 40] < REJECTED_WEIGHT and r.chain_weights[1, 40] > 0.5
+    assert np.sum(r.chain_weights < REJECTED_WEIGHT) == 1
+    # a plain chain (no robust kernel, no further front end) keeps every increment
+    plain = SlamConfig(back_end="none", loop_rounds=1, robust_chain=False)
+    r1 = _fake_run_slam(monkeypatch, a, b, loops, plain, odo)
+    np.testing.assert_array_equal(r1.chain_weights, np.ones((1, m)))
+    pg1 = front_end_pose_graph(a, r1.odometry, loops, plain, revisits=r1.revisits)
+    np.testing.assert_allclose(r1.loop_weights, np.asarray(pg1.edge_weights)[m : m + 5])
+
+
+def test_run_slam_on_one_scan_reports_no_pose_graph(monkeypatch):
+    one = np.zeros((1, 3))
+    r = _fake_run_slam(monkeypatch, one, one, NO_LOOPS, SlamConfig(back_end="none"), one)
+    assert r.loop_weights.shape == (0,) and r.chain_weights.shape == (2, 0)
+    assert r.pose_graph_cost == 0.0

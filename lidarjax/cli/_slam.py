@@ -156,23 +156,34 @@ def _resimulated(args, loaded, idx, ranges, az, cap, usable):
     return out, info
 
 
-def _write_loops(path, idx, loops, revisits) -> None:
-    """``loops.csv``: one relative-pose factor per row, scan indices of LOG."""
-    rows = ["kind,scan_from,scan_to,dx_m,dy_m,dyaw_rad"]
-    for kind, found in (("loop", loops), ("revisit", revisits)):
-        for (a, b), m in zip(np.asarray(found.edges), np.asarray(found.measurements)):
-            rows.append(f"{kind},{idx[a]},{idx[b]},{m[0]:.6f},{m[1]:.6f},{m[2]:.6f}")
+def _write_loops(path, idx, res) -> None:
+    """``loops.csv``: one relative-pose factor per row, scan indices of LOG, with its
+    weight in the final pose graph (``SlamResult.loop_weights``: near 1 kept, below
+    ``slam.REJECTED_WEIGHT`` taken for an outlier)."""
+    rows = ["kind,scan_from,scan_to,dx_m,dy_m,dyaw_rad,weight"]
+    for kind, found, weights in (
+        ("loop", res.loops, res.loop_weights),
+        ("revisit", res.revisits, res.revisit_weights),
+    ):
+        edges = np.asarray(found.edges).reshape(-1, 2)
+        meas = np.asarray(found.measurements).reshape(-1, 3)
+        for (a, b), m, w in zip(edges, meas, np.asarray(weights, float)):
+            rows.append(f"{kind},{idx[a]},{idx[b]},{m[0]:.6f},{m[1]:.6f},{m[2]:.6f},{w:.6g}")
     path.write_text("\n".join(rows) + "\n")
 
 
-def _write_front_end(path, idx, res) -> None:
+def _write_front_end(path, idx, res, chain_models) -> None:
     """``front_end.csv``: one row per scan (index in LOG) of the front end's match: rays in
     its objective, the standard deviations of the match's own information in the scan's
     frame (rays taken as independent, so over-confident: for comparing scans, e.g. a
     corridor's large along-track sd; empty for the first scan, ``inf`` where the
-    information is not positive definite), whether it passed the gate, and its wall
-    time."""
-    rows = ["scan,rays_used,sd_x_m,sd_y_m,sd_yaw_rad,passed_gate,seconds"]
+    information is not positive definite), whether it passed the gate, its wall time,
+    and the final pose graph's weight of the increment from the scan before
+    (``SlamResult.chain_weights``; below ``slam.REJECTED_WEIGHT``: the graph overruled
+    it), then that of each further front end's increment (``graph_weight_MODEL``)."""
+    names = ["graph_weight"] + [f"graph_weight_{m.replace('_', '-')}" for m in chain_models]
+    rows = ["scan,rays_used,sd_x_m,sd_y_m,sd_yaw_rad,passed_gate,seconds," + ",".join(names)]
+    cw = np.asarray(res.chain_weights, float)
     for k, i in enumerate(idx):
         info = np.asarray(res.front_end_information[k], float)
         info = 0.5 * (info + info.T)
@@ -182,11 +193,53 @@ def _write_front_end(path, idx, res) -> None:
             sd = ",".join(f"{v:.6g}" for v in np.sqrt(np.diag(np.linalg.inv(info))))
         else:
             sd = "inf,inf,inf"
+        # the first scan has no increment into it
+        w = ",".join("" if k == 0 else f"{v:.6g}" for v in cw[:, max(k - 1, 0)])
         rows.append(
             f"{i},{int(res.front_end_n_used[k])},{sd},{int(res.front_end_plausible[k])},"
-            f"{float(res.front_end_seconds_per_scan[k]):.6f}"
+            f"{float(res.front_end_seconds_per_scan[k]):.6f},{w}"
         )
     path.write_text("\n".join(rows) + "\n")
+
+
+def _plot_loops(ax, est, res) -> None:
+    """The loop closures as segments between their scans' estimated positions (m): kept
+    ones in blue, those the pose graph rejected (weight below ``slam.REJECTED_WEIGHT``)
+    in red."""
+    from matplotlib.collections import LineCollection
+
+    from .. import slam
+
+    e = np.asarray(res.loops.edges).reshape(-1, 2)
+    w = np.asarray(res.loop_weights, float)
+    for keep, color, label in ((True, "tab:blue", "loop closure"), (False, "tab:red", None)):
+        sel = e[(w >= slam.REJECTED_WEIGHT) == keep]
+        if len(sel) == 0:
+            continue
+        label = label or "loop closure the pose graph rejected"
+        segs = np.stack([est[sel[:, 0], :2], est[sel[:, 1], :2]], 1)
+        ax.add_collection(LineCollection(segs, colors=color, linewidths=0.6, label=label))
+    if len(e):
+        ax.legend(loc="best", fontsize=8, framealpha=0.8)
+
+
+def _verdicts(res, models) -> dict:
+    """``slam.json``'s ``pose_graph``: its final cost and how many loop closures,
+    revisits and increments of each front end (``models``: the first front end's, then
+    the further ones'; ``MODEL: count``) it took for outliers (weight below
+    ``slam.REJECTED_WEIGHT``)."""
+    from .. import slam
+
+    cut = slam.REJECTED_WEIGHT
+    models = [m.replace("_", "-") for m in models]
+    cw = np.asarray(res.chain_weights, float)
+    return {
+        "cost": float(res.pose_graph_cost),
+        "rejected_weight": cut,
+        "loops_rejected": int(np.sum(np.asarray(res.loop_weights) < cut)),
+        "revisits_rejected": int(np.sum(np.asarray(res.revisit_weights) < cut)),
+        "increments_rejected": {m: int(np.sum(row < cut)) for m, row in zip(models, cw)},
+    }
 
 
 def _errors(poses: dict, ates: dict, gt: np.ndarray, delta_m: float) -> dict:
@@ -299,8 +352,8 @@ def cmd_slam(args) -> int:
         p = np.asarray(p, float)
         write_tum(out / name, stamps, jaxlie.SE2.from_xy_theta(p[:, 0], p[:, 1], p[:, 2]))
         files.append(name)
-    _write_loops(out / "loops.csv", idx, res.loops, res.revisits)
-    _write_front_end(out / "front_end.csv", idx, res)
+    _write_loops(out / "loops.csv", idx, res)
+    _write_front_end(out / "front_end.csv", idx, res, cfg.chain_models)
     files += ["loops.csv", "front_end.csv"]
 
     # the map of the estimate, as `lidarjax map` builds one at a log's poses
@@ -361,6 +414,9 @@ def cmd_slam(args) -> int:
         else dataclasses.asdict(res.odometry_calibration),
         # scans whose match failed the gate: placed near the odometry's prediction
         "front_end_gate_fallbacks": int(np.sum(~np.asarray(res.front_end_plausible[1:]))),
+        # what the final pose graph overruled: factors whose weight fell below
+        # slam.REJECTED_WEIGHT (whitened residual over 3 Cauchy scales)
+        "pose_graph": _verdicts(res, (cfg.front.model, *cfg.chain_models)),
         "seconds": seconds,
         "front_end_scans_per_s": n_fe / max(seconds.get("front_end", 0.0), 1e-9),
         "time_unit": unit,
@@ -386,15 +442,20 @@ def cmd_slam(args) -> int:
             label="ground truth (aligned)",
         )
     plot_trajectory(est, ax=ax, color="tab:orange", lw=0.9, label="SLAM estimate")
+    _plot_loops(ax, est, res)
     fig.savefig(out / "slam.png", dpi=150)
     plt.close(fig)
     files.append("slam.png")
 
+    pgv = summary["pose_graph"]
+    overruled = ", ".join(f"{m} {c}" for m, c in pgv["increments_rejected"].items())
     print(
         f"SLAM ({args.model} matching, back end {args.back_end}) on {n_fe} scans of "
-        f"{loaded.source}: {summary['n_loops']} loop closures, {summary['n_revisits']} "
-        f"revisits; front end {summary['front_end_scans_per_s']:.2f} scans/s, "
-        f"{summary['front_end_gate_fallbacks']} matches failed its gate"
+        f"{loaded.source}: {summary['n_loops']} loop closures ({pgv['loops_rejected']} "
+        f"rejected by the pose graph), {summary['n_revisits']} revisits; front end "
+        f"{summary['front_end_scans_per_s']:.2f} scans/s, "
+        f"{summary['front_end_gate_fallbacks']} matches failed its gate; increments the "
+        f"pose graph overruled: {overruled}"
     )
     if gt is not None:
         errs = _errors(trajectories, ates, gt, rpe_delta)

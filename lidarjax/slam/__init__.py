@@ -35,6 +35,7 @@ from ._loops import find_loops as find_loops
 from ._loops import find_revisits as find_revisits
 from ._loops import loop_threshold as loop_threshold
 from ._loops import scene_log_likelihood as scene_log_likelihood
+from ._pipeline import REJECTED_WEIGHT as REJECTED_WEIGHT
 from ._pipeline import SlamConfig as SlamConfig
 from ._pipeline import SlamResult as SlamResult
 from ._pipeline import front_end_pose_graph as front_end_pose_graph

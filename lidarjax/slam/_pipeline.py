@@ -38,7 +38,7 @@ from ._front_end import (
 from ._loops import LoopConfig, Loops, find_loops, find_revisits
 from ._pose_graph import PoseGraphResult, optimize_pose_graph
 
-__all__ = ["SlamConfig", "SlamResult", "front_end_pose_graph", "run_slam"]
+__all__ = ["REJECTED_WEIGHT", "SlamConfig", "SlamResult", "front_end_pose_graph", "run_slam"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -233,6 +233,20 @@ class SlamResult:
         extra_front_end_poses: ``[N 3]`` poses of each of ``cfg.chain_models``'s
             front ends, in that order (empty without them); their wall time is
             ``seconds["extra_front_ends"]``.
+        loop_weights: ``[L]`` the final pose graph's weight of each of ``loops``
+            (:attr:`PoseGraphResult.edge_weights`: ``1 / (1 + s^2 / c^2)`` for a whitened
+            residual ``s`` and the Cauchy scale ``c``): near 1 the graph kept the loop
+            closure, below :data:`REJECTED_WEIGHT` it took it for an outlier. Empty for
+            a single scan.
+        revisit_weights: ``[R]`` the same for ``revisits``.
+        chain_weights: ``[1 + len(extra_front_end_poses), N - 1]`` the final pose
+            graph's weight of each front end's increment ``k -> k + 1``, the first front
+            end's row first, then ``cfg.chain_models``'s: a weight below
+            :data:`REJECTED_WEIGHT` marks an increment the loops and the other factors
+            overruled (a failed match); all 1 without ``cfg.robust_chain`` (plain
+            factors).
+        pose_graph_cost: the final pose graph's robust cost
+            (:attr:`PoseGraphResult.cost`; 0.0 for a single scan).
     """
 
     poses: np.ndarray
@@ -249,6 +263,10 @@ class SlamResult:
     odometry_calibration: OdometryCalibration | None = None
     odometry: np.ndarray | None = None
     extra_front_end_poses: tuple[np.ndarray, ...] = ()
+    loop_weights: np.ndarray | None = None
+    revisit_weights: np.ndarray | None = None
+    chain_weights: np.ndarray | None = None
+    pose_graph_cost: float = 0.0
 
 
 def front_end_pose_graph(
@@ -354,6 +372,33 @@ def front_end_pose_graph(
     )
 
 
+REJECTED_WEIGHT = 0.1
+"""A pose-graph edge whose final weight (:attr:`PoseGraphResult.edge_weights`) is below
+this was taken for an outlier: its whitened residual is over 3 Cauchy scales (``1 / (1 +
+3^2) = 0.1``), where a factor that fits has weight near 1."""
+
+
+def _split_weights(pg, n, loops, revisits, robust_chain, n_extra):
+    """``(loop_weights, revisit_weights, chain_weights, cost)`` of
+    :func:`front_end_pose_graph`'s result ``pg`` (edge order: chain, loops, revisits,
+    odometry, extra chains); empty arrays and cost 0 for ``pg`` None (a single scan)."""
+    n_l, n_r = (
+        len(np.asarray(loops.edges).reshape(-1, 2)),
+        len(np.asarray(revisits.edges).reshape(-1, 2)),
+    )
+    if pg is None:
+        return np.zeros(0), np.zeros(0), np.ones((1 + n_extra, max(n - 1, 0))), 0.0
+    w = np.asarray(pg.edge_weights, float)
+    m = n - 1
+    expect = m * (1 + int(robust_chain) + n_extra) + n_l + n_r
+    if w.shape != (expect,):
+        raise RuntimeError(f"pose graph has {w.shape} edge weights, expected {expect}")
+    first = w[:m]
+    lw, rw = w[m : m + n_l], w[m + n_l : m + n_l + n_r]
+    extra_w = w[m + n_l + n_r + m * int(robust_chain) :].reshape(n_extra, m)
+    return lw, rw, np.concatenate([first[None], extra_w]), float(pg.cost)
+
+
 def run_slam(
     ranges_m: np.ndarray,
     azimuths_rad: np.ndarray,
@@ -408,6 +453,7 @@ def run_slam(
     secs["loops"] = time.perf_counter() - t
     secs["pose_graph"] = 0.0
     pg_poses = searched = fe.poses.copy()
+    pg = None
     for r in range(cfg.loop_rounds if n > 1 else 0):
         if r > 0:
             t = time.perf_counter()
@@ -437,6 +483,7 @@ def run_slam(
         pg = front_end_pose_graph(fe.poses, odo, loops, cfg, revisits, extra)
         pg_poses = np.asarray(pg.poses, float)
         secs["pose_graph"] += time.perf_counter() - t
+    weights = _split_weights(pg, n, loops, revisits, cfg.robust_chain, len(extra))
     back = None
     poses = pg_poses
     secs["back_end"] = 0.0
@@ -462,4 +509,5 @@ def run_slam(
         cal,
         odo,
         tuple(extra),
+        *weights,
     )

@@ -1216,6 +1216,8 @@ class SlamLoops:
     wide_search_xy_m: float = _f(nonnegative)
     far_radius_m: float = _f(nonnegative)  # 0: no far candidates
     rounds: int = _f(count)
+    # 0: off; else the short loop search's separation (slam.SlamConfig.short_loop_separation)
+    short_separation: int = _f(_numeric(lambda v: v == 0 or v >= 3, "0 (off) or >= 3"))
     min_mean_log_likelihood: float | None = _f(finite)  # null: the model's default
     scene_margin: float | None = _f(nonnegative)  # null: the model's default
     scene_samples: int = _f(nonnegative)  # 0: the threshold is never lowered

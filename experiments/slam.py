@@ -288,6 +288,7 @@ def _run_log(cfg, name, seed, out, front, loops, back, multi):
         extra_chain_models=None
         if cfg.pose_graph.extra_chain_models is None
         else tuple(cfg.pose_graph.extra_chain_models),
+        short_loop_separation=cfg.loops.short_separation,
     )
     if dr:
         # the front end, loops and pose graph once; each back end from the pose graph
@@ -299,6 +300,8 @@ def _run_log(cfg, name, seed, out, front, loops, back, multi):
                 "front_end_rtf": None if rate is None else fe_rate / rate,
                 "n_loops": int(len(base.loops.edges)),
                 "n_revisits": int(len(base.revisits.edges)),
+                "n_short_loops": base.n_short_loops,  # of n_loops (loops.short_separation)
+                "seconds_short_loops": base.seconds["short_loops"],
                 # what the final pose graph took for outliers (weight below
                 # slam.REJECTED_WEIGHT): loop closures, and each front end's increments
                 "loops_rejected": int(np.sum(base.loop_weights < slam.REJECTED_WEIGHT)),

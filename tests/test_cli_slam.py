@@ -292,6 +292,37 @@ def test_slam_without_extra_chains(office_log, tmp_path):
     assert ref.extra_front_end_poses == ()
 
 
+@pytest.mark.slow  # ~60 s: SLAM of the 30 scans, twice
+def test_slam_short_loops(office_log, tmp_path):
+    """``--short-loops 7``: the estimate is :func:`lidarjax.slam.run_slam`'s with
+    ``short_loop_separation=7``; its short loop closures are loops.csv's ``short`` rows,
+    counted in slam.json (measured: 5 of the 23 scans tried)."""
+    from lidarjax import slam
+
+    path = office_log[0]
+    out = tmp_path / "s"
+    args = ["slam", str(path), "-o", str(out), "--no-progress"]
+    assert main([*args, "--extra-chains", "none", "--short-loops", "7"]) == 0
+    summary = json.loads((out / "slam.json").read_text())
+    log = load_carmen(path)
+    cap = log.usable_range_m
+    front = slam.FrontEndConfig(range_cap_m=cap, window_m=cap + 2.0)
+    cfg = slam.SlamConfig(
+        front=front, back_end="none", extra_chain_models=(), short_loop_separation=7
+    )
+    ref = slam.run_slam(np.minimum(log.ranges_m, cap), log.azimuths_rad, log.odometry, cfg)
+    _, est = _poses_of_tum(out / "trajectory.tum")
+    np.testing.assert_allclose(est, ref.poses, atol=1e-9)
+    assert ref.n_short_loops > 0 and summary["n_short_loops"] == ref.n_short_loops
+    assert summary["short_loop_separation"] == 7 and summary["n_loops"] == len(ref.loops.edges)
+    _, *rows = (out / "loops.csv").read_text().splitlines()
+    short = [r.split(",") for r in rows if r.startswith("short,")]
+    assert len(short) == ref.n_short_loops
+    pairs = np.array([[int(r[1]), int(r[2])] for r in short])
+    np.testing.assert_array_equal(pairs, ref.loops.edges[-ref.n_short_loops :])
+    assert np.all(pairs[:, 1] - pairs[:, 0] >= 7)
+
+
 @pytest.mark.slow  # ~20 s: SLAM of 12 scans
 def test_slam_resimulate(office_log, tmp_path):
     """``--resimulate SEED`` runs SLAM on :func:`lidarjax.sim.resimulate_scans` of the
@@ -471,6 +502,7 @@ def test_slam_odometry_choice(office_log, capsys):
         (["--extra-chains", "icp"], "--extra-chains", "comma-separated"),
         (["--extra-chains", "endpoint,,"], "--extra-chains", "comma-separated"),
         (["--extra-chains", "endpoint,endpoint"], "--extra-chains", "must not repeat"),
+        (["--short-loops", "2"], "--short-loops", "0 (off) or >= 3"),
     ],
 )
 def test_slam_bad_input(office_log, tmp_path, capsys, extra, argument, words):

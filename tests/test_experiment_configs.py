@@ -234,6 +234,7 @@ VALUE_ERRORS = [
     ("slam", ["loops.scene_margin=-1"], "loops.scene_margin = -1", ">= 0"),
     ("slam", ["loops.scene_samples=-1"], "loops.scene_samples = -1", ">= 0"),
     ("slam", ["loops.far_radius_m=-1"], "loops.far_radius_m = -1", ">= 0"),
+    ("slam", ["loops.short_separation=2"], "loops.short_separation = 2", "0 (off) or >= 3"),
     (
         "slam",
         ["pose_graph.extra_chain_models=[endpoint,icp]"],

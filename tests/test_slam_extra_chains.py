@@ -253,3 +253,55 @@ def test_run_slam_on_one_scan_reports_no_pose_graph(monkeypatch):
     r = _fake_run_slam(monkeypatch, one, one, NO_LOOPS, SlamConfig(back_end="none"), one)
     assert r.loop_weights.shape == (0,) and r.chain_weights.shape == (2, 0)
     assert r.pose_graph_cost == 0.0
+
+
+def test_run_slam_short_loops_join_the_pose_graph(monkeypatch):
+    """short_loop_separation: after the loop rounds, one more loop search along the pose
+    graph with the short settings (the known pairs skipped, the level along the front
+    end's poses); its loops are appended and the graph is solved again with them."""
+    truth, odo, a, b, _ = _noisy_pair(3, n=80)
+    e = np.array([[2, 70], [5, 75]])
+    loops = Loops(e, between_np(truth[e[:, 0]], truth[e[:, 1]]), 2, 1.25)
+    es = np.array([[10, 17], [30, 37], [50, 57]])
+    short = Loops(es, between_np(truth[es[:, 0]], truth[es[:, 1]]), 9, 1.25)
+    calls = []
+
+    def fake_find_loops(rng, az, poses, lcfg, fcfg, **kw):
+        calls.append((np.array(poses), lcfg, kw))
+        return loops if len(calls) == 1 else short
+
+    def fake_front_end(rng, azimuths, odometry, fcfg, progress=False):
+        n = rng.shape[0]
+        p = a if fcfg.model == "decay_rate" else b
+        return FrontEndResult(p, np.zeros(n), 0.5, np.zeros(n), None, None, np.ones(n, bool))
+
+    monkeypatch.setattr(pipeline, "run_front_end", fake_front_end)
+    monkeypatch.setattr(pipeline, "find_loops", fake_find_loops)
+    ranges, az = np.full((len(a), 4), 5.0), np.linspace(-1, 1, 4)
+    cfg = SlamConfig(back_end="none", loop_rounds=1, short_loop_separation=7)
+    r = run_slam(ranges, az, odo, cfg)
+    assert len(calls) == 2
+    poses, lcfg, kw = calls[1]
+    assert (lcfg.min_separation, lcfg.submap_half, lcfg.every) == (7, 3, 1)
+    assert lcfg.wide_search_xy_m == 0.0 and lcfg.far_radius_m == 0.0
+    assert lcfg.radius_m == cfg.loops.radius_m  # the rest as the loop rounds'
+    np.testing.assert_array_equal(kw["known"], e)
+    np.testing.assert_array_equal(kw["level_poses"], a)
+    assert kw["scene_level"] == 1.25
+    # searched along the pose graph of the loop rounds
+    first = front_end_pose_graph(a, r.odometry, loops, cfg, extra_chains=[b])
+    np.testing.assert_allclose(poses, np.asarray(first.poses), atol=1e-9)
+    # the short loops come last, and the final graph has all five
+    assert r.n_short_loops == 3 and r.loops.n_tried == 11
+    np.testing.assert_array_equal(r.loops.edges, np.concatenate([e, es]))
+    final = front_end_pose_graph(a, r.odometry, r.loops, cfg, extra_chains=[b])
+    np.testing.assert_allclose(r.pose_graph_poses, np.asarray(final.poses), atol=1e-9)
+    assert r.loop_weights.shape == (5,) and r.seconds["short_loops"] >= 0
+    assert np.abs(r.pose_graph_poses - np.asarray(first.poses)).max() > 1e-6
+
+
+@pytest.mark.parametrize("bad", [-1, 1, 2, True, 7.0, "7"])
+def test_short_loop_separation_must_be_zero_or_at_least_three(bad):
+    with pytest.raises(ValueError, match="short_loop_separation"):
+        SlamConfig(short_loop_separation=bad)
+    assert SlamConfig(short_loop_separation=3).short_loop_config.submap_half == 1

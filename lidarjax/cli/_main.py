@@ -341,6 +341,16 @@ def build_parser() -> argparse.ArgumentParser:
         "their trajectories are written as front_end_MODEL.tum",
     )
     p.add_argument(
+        "--short-loops",
+        type=int,
+        default=0,
+        metavar="N",
+        help="after the loop rounds, match every scan against the submap of the nearest "
+        "earlier scan at least N (>= 3) scans back along the pose graph and solve it again "
+        "with the loop closures accepted (0, default: off; written as kind 'short' in "
+        "loops.csv)",
+    )
+    p.add_argument(
         "--no-odometry-calibration",
         action="store_true",
         help="give the pose graph the raw odometry; by default its systematic heading "

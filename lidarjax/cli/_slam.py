@@ -157,18 +157,22 @@ def _resimulated(args, loaded, idx, ranges, az, cap, usable):
 
 
 def _write_loops(path, idx, res) -> None:
-    """``loops.csv``: one relative-pose factor per row, scan indices of LOG, with its
-    weight in the final pose graph (``SlamResult.loop_weights``: near 1 kept, below
+    """``loops.csv``: one relative-pose factor per row (kind ``loop``, ``short`` for the
+    short loop search's, or ``revisit``), scan indices of LOG, with its weight in the
+    final pose graph (``SlamResult.loop_weights``: near 1 kept, below
     ``slam.REJECTED_WEIGHT`` taken for an outlier)."""
     rows = ["kind,scan_from,scan_to,dx_m,dy_m,dyaw_rad,weight"]
+    n_long = len(np.asarray(res.loops.edges).reshape(-1, 2)) - res.n_short_loops
     for kind, found, weights in (
         ("loop", res.loops, res.loop_weights),
         ("revisit", res.revisits, res.revisit_weights),
     ):
         edges = np.asarray(found.edges).reshape(-1, 2)
         meas = np.asarray(found.measurements).reshape(-1, 3)
-        for (a, b), m, w in zip(edges, meas, np.asarray(weights, float)):
-            rows.append(f"{kind},{idx[a]},{idx[b]},{m[0]:.6f},{m[1]:.6f},{m[2]:.6f},{w:.6g}")
+        for k, ((a, b), m, w) in enumerate(zip(edges, meas, np.asarray(weights, float))):
+            # the short loop search's loop closures come last (SlamResult.n_short_loops)
+            name = "short" if kind == "loop" and k >= n_long else kind
+            rows.append(f"{name},{idx[a]},{idx[b]},{m[0]:.6f},{m[1]:.6f},{m[2]:.6f},{w:.6g}")
     path.write_text("\n".join(rows) + "\n")
 
 
@@ -288,6 +292,9 @@ def cmd_slam(args) -> int:
         raise CliInputError("--local-map-scans", f"must be >= 0, got {local}")
     rpe_delta = _positive(args.rpe_delta, "--rpe-delta")
     extra_chains = _extra_chains(args.extra_chains)
+    short = args.short_loops
+    if not (short == 0 or short >= 3):
+        raise CliInputError("--short-loops", f"must be 0 (off) or >= 3, got {short}")
     loaded, idx = load_log_scans(args)
     log = loaded.log
     if idx.size < 2:
@@ -331,6 +338,7 @@ def cmd_slam(args) -> int:
         loop_rounds=int(args.loop_rounds),
         calibrate_odometry=not args.no_odometry_calibration,
         extra_chain_models=extra_chains,
+        short_loop_separation=int(short),
         # revisits=None: only with local == 0 (a local map's front end never matched two
         # visits to each other: its relative pose between them is no measurement)
     )
@@ -406,6 +414,9 @@ def cmd_slam(args) -> int:
         "resimulated": resim,
         "n_loops": int(len(res.loops.edges)),
         "n_revisits": int(len(res.revisits.edges)),
+        # of n_loops, those of the short loop search (--short-loops)
+        "short_loop_separation": int(short),
+        "n_short_loops": int(res.n_short_loops),
         # further front ends, each a further robust chain of the pose graph
         "extra_chain_models": [m.replace("_", "-") for m in cfg.chain_models],
         # the odometry's systematic heading errors, removed before the pose graph

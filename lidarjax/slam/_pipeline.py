@@ -129,12 +129,13 @@ class SlamConfig:
             scans placed by the pose graph, independent of the front ends' chains: a
             further measurement across every stretch of them. They are appended to
             ``SlamResult.loops`` (the last ``SlamResult.n_short_loops``). 0 (default):
-            off. At 7 (stop 65, re-solves of stop 64's runs; docs/results/slam.md):
-            orebro 0.177 -> 0.163 m mean over six drift seeds (better on four), fhw
-            0.139 -> 0.140 m over five (worse on four); on logs nobody tuned to
-            freiburg-101 0.045 -> 0.040, csail 0.127 -> 0.112, belgioioso 0.086 ->
-            0.079, edmonton 0.521 -> 0.527 m (better on seven runs of ten). It adds a
-            match per scan: the loop search's time about doubles.
+            off. At 7 (stop 65, re-solves of stop 64's runs; docs/results/slam.md),
+            mean over six drift seeds: orebro 0.177 -> 0.163 m (better on four), intel
+            0.061 -> 0.059 m (six), fhw 0.138 -> 0.140 m (worse on five); on logs nobody
+            tuned to freiburg-101 0.045 -> 0.040, csail 0.129 -> 0.112, belgioioso 0.084
+            -> 0.079, edmonton 0.521 -> 0.527 m (better on seven runs of ten). It adds a
+            match per scan: 0.9-1.9 times the first loop search's time
+            (benchmarks/slam_short_loops.py).
     """
 
     front: FrontEndConfig = dataclasses.field(default_factory=FrontEndConfig)

@@ -264,8 +264,10 @@ def build_parser() -> argparse.ArgumentParser:
         odometry from them instead (the settings of configs/slam.yaml), as the SLAM
         experiment does. Writes into OUT: trajectory.tum (the estimate), front_end.tum,
         odometry.tum (TUM, time stamps in s, or scan indices where the log's are not
-        increasing), loops.csv (loop closures and revisits: scan pairs and relative poses),
-        map.npz (the decay-rate map at the estimate; input of `lidarjax localize`),
+        increasing), loops.csv (loop closures and revisits: scan pairs, relative poses and
+        their weights in the final pose graph, below 0.1 for one it rejected),
+        front_end.csv (each match's rays, sds, gate flag, seconds and the graph's weights of
+        its increments), map.npz (the decay-rate map at the estimate; input of `lidarjax localize`),
         map.yaml + map.pgm, slam.png and slam.json, and, where LOG has ground truth,
         errors.png and the errors (ATE after SE(2) alignment, RPE) in slam.json. The
         estimate is in the odometry's frame, starting at its first pose.

@@ -412,6 +412,17 @@ def front_end_pose_graph(
     )
 
 
+def _joined(loops: Loops, more: Loops) -> Loops:
+    """``loops`` followed by ``more`` (a later search along the same front end's level:
+    its ``scene_level``)."""
+    return Loops(
+        np.concatenate([loops.edges, more.edges]),
+        np.concatenate([loops.measurements, more.measurements]),
+        loops.n_tried + more.n_tried,
+        more.scene_level,
+    )
+
+
 REJECTED_WEIGHT = 0.1
 """A pose-graph edge whose final weight (:attr:`PoseGraphResult.edge_weights`) is below
 this was taken for an outlier: its whitened residual is over 3 Cauchy scales (``1 / (1 +
@@ -492,6 +503,13 @@ def run_slam(
         revisits = Loops(np.zeros((0, 2), np.int64), np.zeros((0, 3)), 0)
     secs["loops"] = time.perf_counter() - t
     secs["pose_graph"] = 0.0
+
+    def solve(found):
+        t = time.perf_counter()
+        g = front_end_pose_graph(fe.poses, odo, found, cfg, revisits, extra)
+        secs["pose_graph"] += time.perf_counter() - t
+        return g, np.asarray(g.poses, float)
+
     pg_poses = searched = fe.poses.copy()
     pg = None
     for r in range(cfg.loop_rounds if n > 1 else 0):
@@ -513,16 +531,8 @@ def run_slam(
             secs["loops"] += time.perf_counter() - t
             if len(more.edges) == 0:
                 break
-            loops = Loops(
-                np.concatenate([loops.edges, more.edges]),
-                np.concatenate([loops.measurements, more.measurements]),
-                loops.n_tried + more.n_tried,
-                more.scene_level,
-            )
-        t = time.perf_counter()
-        pg = front_end_pose_graph(fe.poses, odo, loops, cfg, revisits, extra)
-        pg_poses = np.asarray(pg.poses, float)
-        secs["pose_graph"] += time.perf_counter() - t
+            loops = _joined(loops, more)
+        pg, pg_poses = solve(loops)
     secs["short_loops"] = 0.0
     n_short = 0
     if cfg.short_loop_separation > 0 and pg is not None:
@@ -543,16 +553,8 @@ def run_slam(
         secs["short_loops"] = time.perf_counter() - t
         n_short = len(short.edges)
         if n_short:
-            loops = Loops(
-                np.concatenate([loops.edges, short.edges]),
-                np.concatenate([loops.measurements, short.measurements]),
-                loops.n_tried + short.n_tried,
-                loops.scene_level,
-            )
-            t = time.perf_counter()
-            pg = front_end_pose_graph(fe.poses, odo, loops, cfg, revisits, extra)
-            pg_poses = np.asarray(pg.poses, float)
-            secs["pose_graph"] += time.perf_counter() - t
+            loops = _joined(loops, short)
+            pg, pg_poses = solve(loops)
     weights = _split_weights(pg, n, loops, revisits, cfg.robust_chain, len(extra))
     back = None
     poses = pg_poses

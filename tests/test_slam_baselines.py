@@ -10,7 +10,8 @@ pytest.importorskip("small_gicp")
 
 from lidarjax.metrics import absolute_trajectory_error  # noqa: E402
 from lidarjax.sim import make_office, simulate_scans, wheel_odometry  # noqa: E402
-from lidarjax.slam import IcpSlamResult, icp_pose_graph_slam  # noqa: E402
+from lidarjax.slam import IcpSlamResult, icp_front_end, icp_pose_graph_slam  # noqa: E402
+from lidarjax.slam._front_end import between_np  # noqa: E402
 
 # the drifting odometry the issue's comparison uses on every log
 DRIFT = dict(
@@ -79,6 +80,49 @@ def test_loops_are_true_revisits():
     gap = np.linalg.norm(truth[r.loops[:, 0], :2] - truth[r.loops[:, 1], :2], axis=1)
     assert np.all(gap < 4.0)
     assert absolute_trajectory_error(r.poses, truth).rmse_m < 0.05
+
+
+def test_front_end_alone_is_the_pipelines_chain(office_run):
+    """icp_front_end is the whole pipeline's registration chain, bit for bit (the loop
+    closures and the pose graph do not feed back into it)."""
+    truth, ranges, odo, r = office_run
+    f = icp_front_end(ranges, AZ, odo, max_range_m=MAX_RANGE)
+    np.testing.assert_array_equal(f.poses, r.odometry_poses)
+    np.testing.assert_array_equal(f.registered, r.registered)
+    assert f.seconds > 0
+    # and it is a lidar odometry: ten times better than the odometry it starts from
+    assert absolute_trajectory_error(f.poses, truth).rmse_m < 0.1 * (
+        absolute_trajectory_error(odo, truth).rmse_m
+    )
+
+
+def test_front_end_takes_no_points_from_readings_at_or_beyond_the_cap():
+    """Readings at or beyond max_range_m (no-returns) carry no point: where a scan keeps
+    too few, the chain takes the odometry's increment and says so."""
+    r, a, o = _inputs()
+    r[5:8] = 10.0
+    f = icp_front_end(r, a, o, max_range_m=10.0)
+    assert not f.registered[5:8].any()
+    # scans 5-7 took the odometry's increments
+    np.testing.assert_allclose(
+        between_np(f.poses[4:7], f.poses[5:8]), between_np(o[4:7], o[5:8]), atol=1e-9
+    )
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "name"),
+    [
+        ({"max_range_m": 0.0}, "max_range_m"),
+        ({"max_range_m": 10.0, "range_cap_m": float("nan")}, "range_cap_m"),
+        ({"max_range_m": 10.0, "voxel_m": -0.1}, "voxel_m"),
+    ],
+)
+def test_front_end_bad_options_raise(kwargs, name):
+    r, a, o = _inputs()
+    with pytest.raises(ValueError, match=name):
+        icp_front_end(r, a, o, **kwargs)
+    with pytest.raises(ValueError, match="ranges_m"):
+        icp_front_end(r * 0.0, a, o, max_range_m=10.0)
 
 
 def _inputs(n=12, b=AZ.size):

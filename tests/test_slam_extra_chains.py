@@ -305,3 +305,110 @@ def test_short_loop_separation_must_be_zero_or_at_least_three(bad):
     with pytest.raises(ValueError, match="short_loop_separation"):
         SlamConfig(short_loop_separation=bad)
     assert SlamConfig(short_loop_separation=3).short_loop_config.submap_half == 1
+
+
+def test_masked_extra_chain_graph_is_the_explicit_graph():
+    """extra_chain_valid leaves an extra chain's masked increments out of the graph: the
+    same graph as one built by hand without them, whatever those increments say."""
+    truth, odo, a, b, loops = _noisy_pair(3, n=50)
+    ib = between_np(b[:-1], b[1:])
+    ok = np.ones(len(truth) - 1, bool)
+    ok[[7, 20, 21]] = False
+    ib[~ok] += [1.0, -0.5, 0.4]  # a rejected registration's increment: never used
+    c = _chain(b[0], ib)
+    cfg = SlamConfig(back_end="none")
+    got = front_end_pose_graph(a, odo, loops, cfg, extra_chains=[c], extra_chain_valid=[ok])
+    n = len(truth)
+    ch = np.stack([np.arange(n - 1), np.arange(1, n)], 1)
+    s = np.sqrt(2.0) * np.array(
+        [cfg.chain_sigma_xy_m, cfg.chain_sigma_xy_m, cfg.chain_sigma_yaw_rad]
+    )
+    inc_odo = between_np(odo[:-1], odo[1:])
+    edges = np.concatenate([ch, loops.edges, ch, ch[ok]])
+    zc = between_np(c[:-1], c[1:])
+    z = np.concatenate([between_np(a[:-1], a[1:]), loops.measurements, inc_odo, zc[ok]])
+    sig = np.concatenate(
+        [
+            np.tile(s, (n - 1, 1)),
+            np.tile([0.1, 0.1, 0.02], (3, 1)),
+            odometry_sigmas(inc_odo, cfg.front),
+            np.tile(s, (int(ok.sum()), 1)),
+        ]
+    )
+    robust = np.concatenate([np.ones(n + 2, bool), np.zeros(n - 1, bool), np.ones(ok.sum(), bool)])
+    want = optimize_pose_graph(a, edges.astype(np.int32), z, sig, robust=robust, cauchy_scale=1.0)
+    np.testing.assert_allclose(np.asarray(got.poses), np.asarray(want.poses), atol=1e-12)
+    assert np.asarray(got.edge_weights).shape == (3 * (n - 1) + 3 - 3,)
+    # None and an all-True mask are the unmasked graph
+    full = front_end_pose_graph(a, odo, loops, cfg, extra_chains=[b])
+    for v in (None, [None], [np.ones(n - 1, bool)]):
+        g = front_end_pose_graph(a, odo, loops, cfg, extra_chains=[b], extra_chain_valid=v)
+        np.testing.assert_array_equal(np.asarray(g.poses), np.asarray(full.poses))
+
+
+def test_bad_extra_chain_masks_raise():
+    truth, odo, a, b, _ = _noisy_pair(0, n=20)
+    cfg = SlamConfig(back_end="none")
+    ok = np.ones(19, bool)
+    for bad, what in (
+        ([ok, ok], "one mask per extra chain"),
+        ([ok[:-1]], r"extra_chain_valid\[0\]"),
+        ([ok.astype(int)], r"extra_chain_valid\[0\]"),
+    ):
+        with pytest.raises(ValueError, match=what):
+            front_end_pose_graph(a, odo, NO_LOOPS, cfg, extra_chains=[b], extra_chain_valid=bad)
+
+
+def test_gicp_is_a_chain_model():
+    from lidarjax.slam import CHAIN_MODELS
+
+    assert CHAIN_MODELS == ("decay_rate", "endpoint", "gicp")
+    cfg = SlamConfig(extra_chain_models=("endpoint", "gicp"))
+    assert cfg.chain_models == ("endpoint", "gicp")
+    with pytest.raises(ValueError, match="extra_chain_models"):
+        SlamConfig(extra_chain_models=("gicp", "gicp"))
+
+
+def test_run_slam_fuses_a_gicp_chain_without_its_rejected_registrations(monkeypatch):
+    """extra_chain_models ("endpoint", "gicp"): the GICP chain (icp_front_end's, on the
+    readings below the front end's range cap) joins the graph where its registration was
+    accepted; chain_weights is NaN where it was not, and extra_chain_valid says which."""
+    truth, odo, a, b, loops = _noisy_pair(6, n=80)
+    n = len(truth)
+    c = _noisy_pair(16, n=80)[2]  # a third front end's noise
+    c = _chain(truth[0], between_np(c[:-1], c[1:]))
+    reg = np.ones(n, bool)
+    reg[[11, 12, 40]] = False
+    ic = between_np(c[:-1], c[1:])
+    ic[~reg[1:]] = between_np(odo[:-1], odo[1:])[~reg[1:]]  # the odometry's increment
+    c = _chain(c[0], ic)
+    got = {}
+
+    def fake_icp(rng, az, odometry, max_range_m, range_cap_m, voxel_m, progress):
+        got.update(max_range_m=max_range_m, range_cap_m=range_cap_m, voxel_m=voxel_m)
+        np.testing.assert_array_equal(odometry, odo)  # the raw odometry, as every chain
+        return c, reg, 0.25
+
+    monkeypatch.setattr(pipeline, "_icp_chain", fake_icp)
+    cfg = SlamConfig(back_end="none", loop_rounds=1, extra_chain_models=("endpoint", "gicp"))
+    r = _fake_run_slam(monkeypatch, a, b, loops, cfg, odo)
+    cap = cfg.front.range_cap_m
+    assert got == {"max_range_m": cap, "range_cap_m": cap, "voxel_m": pipeline.GICP_VOXEL_M}
+    assert r.seconds["extra_front_ends"] == 0.5 + 0.25
+    assert len(r.extra_front_end_poses) == 2
+    np.testing.assert_array_equal(r.extra_front_end_poses[1], c)
+    assert [v.tolist() for v in r.extra_chain_valid] == [[True] * (n - 1), reg[1:].tolist()]
+    pg = front_end_pose_graph(
+        a, r.odometry, loops, cfg, extra_chains=[b, c], extra_chain_valid=[None, reg[1:]]
+    )
+    np.testing.assert_allclose(r.pose_graph_poses, np.asarray(pg.poses), atol=1e-9)
+    w = np.asarray(pg.edge_weights)
+    assert r.chain_weights.shape == (3, n - 1)
+    np.testing.assert_array_equal(np.isnan(r.chain_weights[2]), ~reg[1:])
+    np.testing.assert_allclose(r.chain_weights[2, reg[1:]], w[-int(reg[1:].sum()) :], atol=1e-12)
+    np.testing.assert_allclose(
+        r.chain_weights[1], w[-int(reg[1:].sum()) - (n - 1) : -int(reg[1:].sum())], atol=1e-12
+    )
+    assert not np.isnan(r.chain_weights[:2]).any()
+    # three chains that agree with the truth about as well as two: the graph is good
+    assert _ate(r.pose_graph_poses, truth) < 0.05

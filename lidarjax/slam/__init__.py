@@ -8,7 +8,9 @@ from ._back_end import joint_objective as joint_objective
 from ._back_end import optimize_alternating as optimize_alternating
 from ._back_end import optimize_joint as optimize_joint
 from ._back_end import trajectory_log_likelihood as trajectory_log_likelihood
+from ._baselines import IcpFrontEndResult as IcpFrontEndResult
 from ._baselines import IcpSlamResult as IcpSlamResult
+from ._baselines import icp_front_end as icp_front_end
 from ._baselines import icp_pose_graph_slam as icp_pose_graph_slam
 from ._calibration import OdometryCalibration as OdometryCalibration
 from ._calibration import calibrate_odometry as calibrate_odometry
@@ -35,6 +37,7 @@ from ._loops import find_loops as find_loops
 from ._loops import find_revisits as find_revisits
 from ._loops import loop_threshold as loop_threshold
 from ._loops import scene_log_likelihood as scene_log_likelihood
+from ._pipeline import CHAIN_MODELS as CHAIN_MODELS
 from ._pipeline import REJECTED_WEIGHT as REJECTED_WEIGHT
 from ._pipeline import SlamConfig as SlamConfig
 from ._pipeline import SlamResult as SlamResult

@@ -48,7 +48,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["IcpSlamResult", "icp_pose_graph_slam"]
+__all__ = ["IcpFrontEndResult", "IcpSlamResult", "icp_front_end", "icp_pose_graph_slam"]
 
 # --- points ------------------------------------------------------------------------------
 _LAYERS_Z_M = (-0.1, 0.0, 0.1)  # each 2-D point becomes a short vertical column (see above)
@@ -204,6 +204,17 @@ def _import_backends():
     return gtsam, small_gicp
 
 
+def _import_small_gicp():
+    try:
+        import small_gicp
+    except ImportError as err:  # pragma: no cover - depends on the environment
+        raise ImportError(
+            "the GICP front end (icp_front_end, run_slam's 'gicp' chain) needs small_gicp "
+            "(pip install 'lidarjax[slam]')"
+        ) from err
+    return small_gicp
+
+
 # --- registration ------------------------------------------------------------------------
 
 
@@ -279,9 +290,120 @@ def _register(
 
 
 def _scan_points(ranges: np.ndarray, az: np.ndarray, max_range_m: float, cap: float) -> np.ndarray:
-    keep = (ranges < max_range_m) & (ranges <= cap)
+    keep = (ranges < max_range_m) & (ranges <= cap) & (ranges > 0)
     r = ranges[keep]
     return np.column_stack([r * np.cos(az[keep]), r * np.sin(az[keep])])
+
+
+def _chain_step(sg, chain, window, points, source, odo, k: int, voxel_m: float):
+    """The front end's step ``k`` (module docstring, 2.): scan ``k``'s pose registered
+    against the submap of the scans in ``window`` (placed at ``chain``), from the odometry's
+    guess; ``(pose [3], registered)``, the guess itself where the registration is rejected
+    or there are too few points."""
+    guess = _compose(chain[k - 1], _between(odo[k - 1], odo[k]))
+    if source is None:
+        return guess, False
+    sub_xy = np.concatenate([_transform(chain[m], points[m]) for m in window])
+    if len(sub_xy) < _NEIGHBOURS:
+        return guess, False
+    target = _Cloud(sg, sub_xy, voxel_m)
+    pose, converged = _register(sg, target, source, guess, _FRONT_CORR_M)
+    frac, _, _ = _fit(target, points[k], pose)
+    corr = _between(guess, pose)
+    ok = (
+        converged
+        and frac >= _FRONT_MIN_INLIERS
+        and math.hypot(corr[0], corr[1]) <= _FRONT_MAX_CORR_M
+        and abs(corr[2]) <= _FRONT_MAX_CORR_RAD
+    )
+    return (pose, True) if ok else (guess, False)
+
+
+def _icp_chain(ranges, az, odo, max_range_m: float, range_cap_m: float, voxel_m: float, progress):
+    """:func:`icp_front_end` on checked inputs (readings ``<= 0`` carry no point either):
+    ``(poses [N 3], registered [N], seconds)``."""
+    sg = _import_small_gicp()
+    t0 = time.perf_counter()
+    n = ranges.shape[0]
+    points = [_scan_points(ranges[k], az, max_range_m, range_cap_m) for k in range(n)]
+    sources = [_Cloud(sg, p, voxel_m) if len(p) >= _NEIGHBOURS else None for p in points]
+    chain = np.empty((n, 3))
+    chain[0] = odo[0]
+    registered = np.zeros(n, bool)
+    registered[0] = True
+    window: deque[int] = deque([0], maxlen=_SUBMAP_SCANS)
+    steps = range(1, n)
+    if progress:
+        from tqdm.auto import tqdm
+
+        steps = tqdm(steps, desc="icp front end", unit="scan")
+    for k in steps:
+        chain[k], registered[k] = _chain_step(
+            sg, chain, window, points, sources[k], odo, k, voxel_m
+        )
+        window.append(k)
+    chain[:, 2] = _wrap(chain[:, 2])
+    return chain, registered, time.perf_counter() - t0
+
+
+@dataclass(frozen=True)
+class IcpFrontEndResult:
+    """Result of :func:`icp_front_end`.
+
+    Attributes:
+        poses: ``[N, 3]`` the registration chain ``(x [m], y [m], yaw [rad])``, row 0 equal
+            to ``odometry_xy_yaw[0]``, yaw wrapped to ``(-pi, pi]``.
+        registered: ``[N]`` bool, ``True`` where the scan-to-submap registration was
+            accepted (row 0 too); a ``False`` row took the odometry's increment.
+        seconds: wall time (s).
+    """
+
+    poses: np.ndarray
+    registered: np.ndarray
+    seconds: float
+
+
+def icp_front_end(
+    ranges_m: np.ndarray,
+    azimuths_rad: np.ndarray,
+    odometry_xy_yaw: np.ndarray,
+    *,
+    max_range_m: float,
+    range_cap_m: float = 20.0,
+    voxel_m: float = 0.05,
+    progress: bool = False,
+) -> IcpFrontEndResult:
+    """The front end of :func:`icp_pose_graph_slam` alone: each scan registered by
+    small_gicp against the previous scans' submap from the odometry's guess (module
+    docstring, 1.-2.), without loop closures or a pose graph. :func:`~lidarjax.slam.run_slam`
+    runs it as a further chain of increments (``SlamConfig.extra_chain_models``
+    ``"gicp"``): it fails at other scans than the decay-rate and endpoint front ends.
+
+    Args:
+        ranges_m: ``[N, B]`` ranges (m), all positive.
+        azimuths_rad: ``[B]`` beam angles (rad).
+        odometry_xy_yaw: ``[N, 3]`` raw odometry poses; its increments are the guesses and
+            row 0 anchors the chain.
+        max_range_m: no-return threshold (m): readings ``>= max_range_m`` are dropped.
+        range_cap_m: readings beyond this (m) are dropped too.
+        voxel_m: voxel size (m) of the downsampling.
+        progress: tqdm progress bar.
+
+    Returns:
+        :class:`IcpFrontEndResult`; the same chain as
+        :attr:`IcpSlamResult.odometry_poses` and :attr:`IcpSlamResult.registered`.
+
+    Raises:
+        ValueError: bad shapes or values (the message names the argument).
+        ImportError: small_gicp is not installed.
+    """
+    ranges, az, odo = _check_inputs(ranges_m, azimuths_rad, odometry_xy_yaw)
+    max_range_m = _positive(max_range_m, "max_range_m")
+    range_cap_m = _positive(range_cap_m, "range_cap_m")
+    voxel_m = _positive(voxel_m, "voxel_m")
+    return IcpFrontEndResult(
+        *_icp_chain(ranges, az, odo, max_range_m, range_cap_m, voxel_m, progress)
+    )
 
 
 # --- the pipeline ------------------------------------------------------------------------
@@ -423,24 +545,8 @@ def icp_pose_graph_slam(
         # ---- front end: scan k against the local submap of the previous scans
         tic = time.perf_counter()
         delta_odo = _between(odo[k - 1], odo[k])
-        guess = _compose(chain[k - 1], delta_odo)
-        chain[k] = guess
         src = sources[k]
-        if src is not None:
-            sub_xy = np.concatenate([_transform(chain[m], points[m]) for m in window])
-            if len(sub_xy) >= _NEIGHBOURS:
-                target = _Cloud(sg, sub_xy, voxel_m)
-                pose, converged = _register(sg, target, src, guess, _FRONT_CORR_M)
-                frac, _, _ = _fit(target, points[k], pose)
-                corr = _between(guess, pose)
-                if (
-                    converged
-                    and frac >= _FRONT_MIN_INLIERS
-                    and math.hypot(corr[0], corr[1]) <= _FRONT_MAX_CORR_M
-                    and abs(corr[2]) <= _FRONT_MAX_CORR_RAD
-                ):
-                    chain[k] = pose
-                    registered[k] = True
+        chain[k], registered[k] = _chain_step(sg, chain, window, points, src, odo, k, voxel_m)
         window.append(k)
         rel = _between(chain[k - 1], chain[k])
         est[k] = _compose(est[k - 1], rel)

@@ -26,6 +26,7 @@ import time
 import numpy as np
 
 from ._back_end import BackEndConfig, BackEndResult, optimize_alternating, optimize_joint
+from ._baselines import _icp_chain
 from ._calibration import OdometryCalibration, calibrate_odometry
 from ._front_end import (
     MATCHING_MODELS,
@@ -38,7 +39,24 @@ from ._front_end import (
 from ._loops import LoopConfig, Loops, find_loops, find_revisits
 from ._pose_graph import PoseGraphResult, optimize_pose_graph
 
-__all__ = ["REJECTED_WEIGHT", "SlamConfig", "SlamResult", "front_end_pose_graph", "run_slam"]
+__all__ = [
+    "CHAIN_MODELS",
+    "REJECTED_WEIGHT",
+    "SlamConfig",
+    "SlamResult",
+    "front_end_pose_graph",
+    "run_slam",
+]
+
+CHAIN_MODELS = (*MATCHING_MODELS, "gicp")
+"""What :attr:`SlamConfig.extra_chain_models` may name: a front end with a matching
+model (:data:`~lidarjax.slam.MATCHING_MODELS`), or ``"gicp"``, small_gicp's
+scan-to-submap registration (:func:`~lidarjax.slam.icp_front_end`, the classical
+baseline's front end; needs small_gicp, ``pip install 'lidarjax[slam]'``)."""
+
+GICP_VOXEL_M = 0.05
+"""Voxel size (m) of the ``"gicp"`` chain's downsampling (:func:`~lidarjax.slam.icp_front_end`'s
+default, as the baseline runs)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -103,9 +121,11 @@ class SlamConfig:
             freiburg-101 0.053 / 0.055 / 0.048 -> 0.049 / 0.050 / 0.047 m; intel, fhw
             and orebro (six seeds) within 2 mm by mean. The front end still predicts
             from the raw odometry.
-        extra_chain_models: front-end models (``"decay_rate"``, ``"endpoint"``) run as
-            further front ends, with ``front``'s settings otherwise, each an independent
-            lidar odometry from the same raw odometry. Their increments join the pose
+        extra_chain_models: front-end models (:data:`CHAIN_MODELS`: ``"decay_rate"``,
+            ``"endpoint"``, ``"gicp"``) run as further front ends, with ``front``'s
+            settings otherwise (``"gicp"``: :func:`~lidarjax.slam.icp_front_end` on the
+            readings below ``front.range_cap_m``, its rejected registrations left out of
+            the graph), each an independent lidar odometry from the same raw odometry. Their increments join the pose
             graph as further Cauchy-robust chains; with ``k`` chains in all, every
             chain's sigmas are ``sqrt(k)`` times ``chain_sigma_*`` (chains that agree
             weigh as one). Where one front end fails and a loop closure or the odometry
@@ -190,10 +210,10 @@ class SlamConfig:
         if isinstance(v, bool) or not isinstance(v, int) or not (v == 0 or v >= 3):
             raise ValueError(f"short_loop_separation must be 0 (off) or an int >= 3, got {v!r}")
         v = self.extra_chain_models
-        if v is not None and (not isinstance(v, tuple) or any(m not in MATCHING_MODELS for m in v)):
+        if v is not None and (not isinstance(v, tuple) or any(m not in CHAIN_MODELS for m in v)):
             raise ValueError(
                 f"extra_chain_models must be None or a tuple of models from "
-                f"{MATCHING_MODELS}, got {v!r}"
+                f"{CHAIN_MODELS}, got {v!r}"
             )
         if v is not None and len(set(v)) != len(v):
             raise ValueError(f"extra_chain_models must not repeat a model, got {v!r}")
@@ -280,12 +300,19 @@ class SlamResult:
             end's row first, then ``cfg.chain_models``'s: a weight below
             :data:`REJECTED_WEIGHT` marks an increment the loops and the other factors
             overruled (a failed match); all 1 without ``cfg.robust_chain`` (plain
-            factors).
+            factors); NaN where an increment is not in the graph
+            (``extra_chain_valid``).
         pose_graph_cost: the final pose graph's robust cost
             (:attr:`PoseGraphResult.cost`; 0.0 for a single scan).
         n_short_loops: how many of ``loops`` (the last ones) the short loop search
             found (``SlamConfig.short_loop_separation``; 0 without it); its wall time
             is ``seconds["short_loops"]``.
+        extra_chain_valid: ``[N - 1]`` bool per extra front end (the order of
+            ``extra_front_end_poses``): the increments in the pose graph. All True for
+            a matching model's front end; for ``"gicp"`` the accepted registrations
+            (:attr:`~lidarjax.slam.IcpFrontEndResult.registered`), its other rows
+            having taken the raw odometry's increment. ``chain_weights`` is NaN where
+            an increment is not in the graph.
     """
 
     poses: np.ndarray
@@ -307,6 +334,7 @@ class SlamResult:
     chain_weights: np.ndarray | None = None
     pose_graph_cost: float = 0.0
     n_short_loops: int = 0
+    extra_chain_valid: tuple[np.ndarray, ...] = ()
 
 
 def front_end_pose_graph(
@@ -316,6 +344,7 @@ def front_end_pose_graph(
     cfg: SlamConfig | None = None,
     revisits: Loops | None = None,
     extra_chains: tuple[np.ndarray, ...] | list[np.ndarray] = (),
+    extra_chain_valid: tuple[np.ndarray | None, ...] | list[np.ndarray | None] | None = None,
 ) -> PoseGraphResult:
     """The pose graph of :func:`run_slam`'s step 3, started at the front end's poses.
 
@@ -335,10 +364,15 @@ def front_end_pose_graph(
         cfg: settings.
         revisits: :func:`~lidarjax.slam.find_revisits` on ``front_end_poses`` (None:
             none; :func:`run_slam` passes them with ``cfg.uses_revisits``).
+        extra_chains: ``[N 3]`` poses of further front ends (:attr:`SlamConfig.chain_models`),
+            each a further Cauchy-robust chain of increments.
+        extra_chain_valid: one ``[N - 1]`` bool mask (or None: all) per extra chain, the
+            increments that join the graph (a ``"gicp"`` chain's rejected registrations,
+            which took the raw odometry's increment, do not); None: all of every chain.
 
     Returns:
         :class:`~lidarjax.slam.PoseGraphResult`; its ``edge_weights`` are ordered chain,
-        loops, revisits, odometry.
+        loops, revisits, odometry, then each extra chain's valid increments.
     """
     cfg = SlamConfig() if cfg is None else cfg
     fe = np.asarray(front_end_poses, float)
@@ -362,6 +396,7 @@ def front_end_pose_graph(
     if extra and not cfg.robust_chain:
         raise ValueError("extra_chains needs cfg.robust_chain=True")
     n = fe.shape[0]
+    valid = _chain_masks(extra_chain_valid, len(extra), n)
     chain = np.stack([np.arange(n - 1), np.arange(1, n)], 1)
     edges = [chain, np.asarray(loops.edges).reshape(-1, 2)]
     meas = [between_np(fe[:-1], fe[1:]), np.asarray(loops.measurements, float).reshape(-1, 3)]
@@ -397,11 +432,11 @@ def front_end_pose_graph(
         meas.append(inc)
         sig.append(odometry_sigmas(inc, cfg.front))
         robust.append(np.zeros(n - 1, bool))
-    for c in extra:
-        edges.append(chain)
-        meas.append(between_np(c[:-1], c[1:]))
-        sig.append(np.tile(chain_sig, (n - 1, 1)))
-        robust.append(np.ones(n - 1, bool))
+    for c, ok in zip(extra, valid):
+        edges.append(chain[ok])
+        meas.append(between_np(c[:-1], c[1:])[ok])
+        sig.append(np.tile(chain_sig, (int(ok.sum()), 1)))
+        robust.append(np.ones(int(ok.sum()), bool))
     return optimize_pose_graph(
         fe,
         np.concatenate(edges).astype(np.int32),
@@ -410,6 +445,29 @@ def front_end_pose_graph(
         robust=np.concatenate(robust),
         cauchy_scale=cfg.cauchy_scale,
     )
+
+
+def _chain_masks(extra_chain_valid, n_extra: int, n: int) -> list[np.ndarray]:
+    """The ``[N - 1]`` bool mask of each extra chain's increments in the graph (checked)."""
+    if extra_chain_valid is None:
+        return [np.ones(n - 1, bool)] * n_extra
+    masks = list(extra_chain_valid)
+    if len(masks) != n_extra:
+        raise ValueError(
+            f"extra_chain_valid must hold one mask per extra chain ({n_extra}), got {len(masks)}"
+        )
+    for i, m in enumerate(masks):
+        if m is None:
+            masks[i] = np.ones(n - 1, bool)
+            continue
+        m = np.asarray(m)
+        if m.shape != (n - 1,) or m.dtype != bool:
+            raise ValueError(
+                f"extra_chain_valid[{i}] must be a bool array of shape [{n - 1}] (one per "
+                f"increment), got {m.dtype} {m.shape}"
+            )
+        masks[i] = m
+    return masks
 
 
 def _joined(loops: Loops, more: Loops) -> Loops:
@@ -429,10 +487,13 @@ this was taken for an outlier: its whitened residual is over 3 Cauchy scales (``
 3^2) = 0.1``), where a factor that fits has weight near 1."""
 
 
-def _split_weights(pg, n, loops, revisits, robust_chain, n_extra):
+def _split_weights(pg, n, loops, revisits, robust_chain, valid):
     """``(loop_weights, revisit_weights, chain_weights, cost)`` of
     :func:`front_end_pose_graph`'s result ``pg`` (edge order: chain, loops, revisits,
-    odometry, extra chains); empty arrays and cost 0 for ``pg`` None (a single scan)."""
+    odometry, extra chains' valid increments; ``valid``: their ``[N - 1]`` masks, NaN
+    weights where an increment is not in the graph); empty arrays and cost 0 for ``pg``
+    None (a single scan)."""
+    n_extra = len(valid)
     n_l, n_r = (
         len(np.asarray(loops.edges).reshape(-1, 2)),
         len(np.asarray(revisits.edges).reshape(-1, 2)),
@@ -441,13 +502,18 @@ def _split_weights(pg, n, loops, revisits, robust_chain, n_extra):
         return np.zeros(0), np.zeros(0), np.ones((1 + n_extra, max(n - 1, 0))), 0.0
     w = np.asarray(pg.edge_weights, float)
     m = n - 1
-    expect = m * (1 + int(robust_chain) + n_extra) + n_l + n_r
+    expect = m * (1 + int(robust_chain)) + sum(int(v.sum()) for v in valid) + n_l + n_r
     if w.shape != (expect,):
         raise RuntimeError(f"pose graph has {w.shape} edge weights, expected {expect}")
-    first = w[:m]
+    rows = [w[:m]]
     lw, rw = w[m : m + n_l], w[m + n_l : m + n_l + n_r]
-    extra_w = w[m + n_l + n_r + m * int(robust_chain) :].reshape(n_extra, m)
-    return lw, rw, np.concatenate([first[None], extra_w]), float(pg.cost)
+    at = m + n_l + n_r + m * int(robust_chain)
+    for v in valid:
+        row = np.full(m, np.nan)
+        row[v] = w[at : at + int(v.sum())]
+        rows.append(row)
+        at += int(v.sum())
+    return lw, rw, np.stack(rows), float(pg.cost)
 
 
 def run_slam(
@@ -476,11 +542,19 @@ def run_slam(
     secs = {}
     fe = run_front_end(rng, az, odo, cfg.front, progress=progress)
     secs["front_end"] = fe.seconds
-    extra = []
+    extra, extra_valid = [], []
     secs["extra_front_ends"] = 0.0
     for m in cfg.chain_models:
+        if m == "gicp":
+            cap = cfg.front.range_cap_m  # the front end's no-returns: readings at the cap
+            p, ok, s = _icp_chain(rng, az, odo, cap, cap, GICP_VOXEL_M, progress)
+            extra.append(p)
+            extra_valid.append(np.asarray(ok[1:], bool))
+            secs["extra_front_ends"] += s
+            continue
         x = run_front_end(rng, az, odo, dataclasses.replace(cfg.front, model=m), progress=progress)
         extra.append(np.asarray(x.poses, float))
+        extra_valid.append(np.ones(n - 1, bool))
         secs["extra_front_ends"] += x.seconds
     cal = None
     if cfg.calibrate_odometry and n > 1:
@@ -506,7 +580,7 @@ def run_slam(
 
     def solve(found):
         t = time.perf_counter()
-        g = front_end_pose_graph(fe.poses, odo, found, cfg, revisits, extra)
+        g = front_end_pose_graph(fe.poses, odo, found, cfg, revisits, extra, extra_valid)
         secs["pose_graph"] += time.perf_counter() - t
         return g, np.asarray(g.poses, float)
 
@@ -555,7 +629,7 @@ def run_slam(
         if n_short:
             loops = _joined(loops, short)
             pg, pg_poses = solve(loops)
-    weights = _split_weights(pg, n, loops, revisits, cfg.robust_chain, len(extra))
+    weights = _split_weights(pg, n, loops, revisits, cfg.robust_chain, extra_valid)
     back = None
     poses = pg_poses
     secs["back_end"] = 0.0
@@ -583,4 +657,5 @@ def run_slam(
         tuple(extra),
         *weights,
         n_short,
+        tuple(extra_valid),
     )

@@ -14,11 +14,15 @@ from ._inputs import CliInputError, load_log_scans, out_dir
 from ._localize import _stamps
 from ._map import R_MIN_M, _positive, build_stats, model_from_stats, scan_ranges, write_map_files
 
-__all__ = ["BACK_ENDS", "DRIFT", "MATCHING", "cmd_slam"]
+__all__ = ["BACK_ENDS", "CHAINS", "DRIFT", "MATCHING", "cmd_slam"]
 
 MATCHING = ("decay-rate", "endpoint")
 """``--model``: the scan-matching model (:data:`lidarjax.slam.MATCHING_MODELS`, spelled
 with a hyphen as ``lidarjax map`` spells its models)."""
+CHAINS = (*MATCHING, "gicp")
+"""``--extra-chains``' models (:data:`lidarjax.slam.CHAIN_MODELS`): a matching model's
+front end, or ``gicp``, small_gicp's scan-to-submap registration
+(:func:`lidarjax.slam.icp_front_end`; needs ``pip install 'lidarjax[slam]'``)."""
 BACK_ENDS = ("none", "joint", "alternating")
 """``--back-end``: :class:`lidarjax.slam.SlamConfig`'s ``back_end`` (default none)."""
 DRIFT = {
@@ -54,10 +58,10 @@ def _extra_chains(value: str) -> tuple[str, ...] | None:
         return ()
     models = tuple(m.strip() for m in v.split(","))
     for m in models:
-        if m not in MATCHING:
+        if m not in CHAINS:
             raise CliInputError(
                 "--extra-chains",
-                f"must be 'auto', 'none' or a comma-separated list of {', '.join(MATCHING)}; "
+                f"must be 'auto', 'none' or a comma-separated list of {', '.join(CHAINS)}; "
                 f"got {value!r}",
             )
     if len(set(models)) != len(models):
@@ -184,7 +188,8 @@ def _write_front_end(path, idx, res, chain_models) -> None:
     information is not positive definite), whether it passed the gate, its wall time,
     and the final pose graph's weight of the increment from the scan before
     (``SlamResult.chain_weights``; below ``slam.REJECTED_WEIGHT``: the graph overruled
-    it), then that of each further front end's increment (``graph_weight_MODEL``)."""
+    it), then that of each further front end's increment (``graph_weight_MODEL``; empty
+    where the increment is not in the graph: a rejected ``gicp`` registration)."""
     names = ["graph_weight"] + [f"graph_weight_{m.replace('_', '-')}" for m in chain_models]
     rows = ["scan,rays_used,sd_x_m,sd_y_m,sd_yaw_rad,passed_gate,seconds," + ",".join(names)]
     cw = np.asarray(res.chain_weights, float)
@@ -198,7 +203,9 @@ def _write_front_end(path, idx, res, chain_models) -> None:
         else:
             sd = "inf,inf,inf"
         # the first scan has no increment into it
-        w = ",".join("" if k == 0 else f"{v:.6g}" for v in cw[:, max(k - 1, 0)])
+        w = ",".join(
+            "" if k == 0 or not np.isfinite(v) else f"{v:.6g}" for v in cw[:, max(k - 1, 0)]
+        )
         rows.append(
             f"{i},{int(res.front_end_n_used[k])},{sd},{int(res.front_end_plausible[k])},"
             f"{float(res.front_end_seconds_per_scan[k]):.6f},{w}"

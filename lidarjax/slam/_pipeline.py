@@ -123,21 +123,22 @@ class SlamConfig:
             from the raw odometry.
         extra_chain_models: front-end models (:data:`CHAIN_MODELS`: ``"decay_rate"``,
             ``"endpoint"``, ``"gicp"``) run as further front ends, with ``front``'s settings
-            otherwise (``"gicp"``: :func:`~lidarjax.slam.icp_front_end` on the readings below
-            ``front.range_cap_m``, its rejected registrations left out of the graph), each an
-            independent lidar odometry from the same raw odometry. Their increments join the pose
-            graph as further Cauchy-robust chains; with ``k`` chains in all, every chain's sigmas
-            are ``sqrt(k)`` times ``chain_sigma_*`` (chains that agree weigh as one). Where one
-            front end fails and a loop closure or the odometry rejects its increment, another front
-            end's increment bridges the gap instead of the odometry alone. The loop search, the
-            calibration, the graph's starting poses and the back end follow the first front end
-            (``front``). Needs ``robust_chain``. None (default): the other model
-            (:attr:`chain_models`: an endpoint front end beside a decay-rate one and the reverse);
-            ``()``: one chain. Pose graph ATE with the endpoint chain beside the decay-rate one (six
-            drift seeds, mean): orebro 0.242 -> 0.177 m (better on all six), intel 0.063 -> 0.061 m,
-            fhw 0.128 -> 0.138 m (worse on all six); on logs nobody tuned to (drift seeds 0-2 or
-            0-1) edmonton 0.719 -> 0.521, freiburg-101 0.049 -> 0.045, csail 0.144 -> 0.129,
-            belgioioso 0.090 -> 0.084 m (docs/results/slam.md, stop 64).
+            otherwise (``"gicp"``: :func:`~lidarjax.slam.icp_front_end` on the readings
+            below ``front.range_cap_m``, its rejected registrations left out of the graph),
+            each an independent lidar odometry from the same raw odometry. Their increments
+            join the pose graph as further Cauchy-robust chains; with ``k`` chains in all,
+            every chain's sigmas are ``sqrt(k)`` times ``chain_sigma_*`` (chains that agree
+            weigh as one). Where one front end fails and a loop closure or the odometry
+            rejects its increment, another front end's increment bridges the gap instead of
+            the odometry alone. The loop search, the calibration, the graph's starting poses
+            and the back end follow the first front end (``front``). Needs ``robust_chain``.
+            None (default): the other model (:attr:`chain_models`: an endpoint front end
+            beside a decay-rate one and the reverse); ``()``: one chain. Pose graph ATE with
+            the endpoint chain beside the decay-rate one (six drift seeds, mean): orebro
+            0.242 -> 0.177 m (better on all six), intel 0.063 -> 0.061 m, fhw 0.128 -> 0.138
+            m (worse on all six); on logs nobody tuned to (drift seeds 0-2 or 0-1) edmonton
+            0.719 -> 0.521, freiburg-101 0.049 -> 0.045, csail 0.144 -> 0.129, belgioioso
+            0.090 -> 0.084 m (docs/results/slam.md, stop 64).
         short_loop_separation: > 0 (at least 3): after the loop rounds, a further loop
             search along the pose graph matches every scan against the submap of the
             nearest earlier scan at least this many scans back

@@ -412,3 +412,21 @@ def test_run_slam_fuses_a_gicp_chain_without_its_rejected_registrations(monkeypa
     assert not np.isnan(r.chain_weights[:2]).any()
     # three chains that agree with the truth about as well as two: the graph is good
     assert _ate(r.pose_graph_poses, truth) < 0.05
+
+
+def test_run_slam_without_small_gicp_fails_before_the_front_ends(monkeypatch):
+    """A 'gicp' chain without small_gicp installed: the ImportError comes first, before
+    the front ends run (minutes on a real log)."""
+
+    def missing():
+        raise ImportError("needs small_gicp (pip install 'lidarjax[slam]')")
+
+    def no_front_end(*a, **k):
+        raise AssertionError("a front end ran")
+
+    monkeypatch.setattr(pipeline, "_import_small_gicp", missing)
+    monkeypatch.setattr(pipeline, "run_front_end", no_front_end)
+    cfg = SlamConfig(back_end="none", extra_chain_models=("gicp",))
+    ranges, az = np.full((5, 4), 5.0), np.linspace(-1, 1, 4)
+    with pytest.raises(ImportError, match="small_gicp"):
+        run_slam(ranges, az, np.zeros((5, 3)), cfg)

@@ -26,7 +26,7 @@ import time
 import numpy as np
 
 from ._back_end import BackEndConfig, BackEndResult, optimize_alternating, optimize_joint
-from ._baselines import _icp_chain
+from ._baselines import _icp_chain, _import_small_gicp
 from ._calibration import OdometryCalibration, calibrate_odometry
 from ._front_end import (
     MATCHING_MODELS,
@@ -537,6 +537,8 @@ def run_slam(
     """
     cfg = SlamConfig() if cfg is None else cfg
     rng, az, odo = _check_inputs(ranges_m, azimuths_rad, odometry_xy_yaw)
+    if "gicp" in cfg.chain_models:
+        _import_small_gicp()  # before the front ends' minutes, not after
     n = rng.shape[0]
     secs = {}
     fe = run_front_end(rng, az, odo, cfg.front, progress=progress)

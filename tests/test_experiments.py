@@ -680,6 +680,29 @@ def test_slam_seeds(tmp_path):
     assert f"{summary['decay_rate_pose_graph']['median_m']:.3f}" in row
 
 
+@pytest.mark.slow
+def test_slam_gicp_chain(tmp_path):
+    """experiments/slam.py with pose_graph.extra_chain_models=[endpoint,gicp]: the run
+    records both chains, and its error budget re-solves the run's own pose graph (the
+    GICP chain's rejected registrations, scans 19-20 of orebro, left out as in run_slam)."""
+    pytest.importorskip("small_gicp")
+    res = run_experiment(
+        "slam",
+        tmp_path,
+        "logs=[orebro]",
+        "figure_log=orebro",
+        "max_scans=25",
+        "loops.min_separation=20",
+        "variants=[decay_rate_pose_graph]",
+        "pose_graph.extra_chain_models=[endpoint,gicp]",
+    )
+    v = res["logs"]["orebro"]["variants"]["decay_rate_pose_graph"]
+    assert v["extra_chain_models"] == ["endpoint", "gicp"]
+    assert len(v["extra_front_end_ate_rmse_m"]) == 2
+    assert set(v["increments_rejected"]) == {"decay_rate", "endpoint", "gicp"}
+    assert v["error_budget"]["pose_graph_m"] == pytest.approx(v["ate_rmse_m"], rel=1e-9)
+
+
 def _slam_in_process(tmp_path, monkeypatch, *overrides):
     """experiments/slam.py's ``main`` in this process on orebro's first 25 scans, writing
     into ``tmp_path`` (no Hydra run: the config composed, the output folder patched);

@@ -295,6 +295,13 @@ def _scan_points(ranges: np.ndarray, az: np.ndarray, max_range_m: float, cap: fl
     return np.column_stack([r * np.cos(az[keep]), r * np.sin(az[keep])])
 
 
+def _scan_clouds(sg, ranges, az, max_range_m: float, range_cap_m: float, voxel_m: float):
+    """Each scan's 2-D points (:func:`_scan_points`) and its small_gicp cloud (None for a
+    scan with fewer points than a covariance needs): ``(points, sources)``."""
+    points = [_scan_points(r, az, max_range_m, range_cap_m) for r in ranges]
+    return points, [_Cloud(sg, p, voxel_m) if len(p) >= _NEIGHBOURS else None for p in points]
+
+
 def _chain_step(sg, chain, window, points, source, odo, k: int, voxel_m: float):
     """The front end's step ``k`` (module docstring, 2.): scan ``k``'s pose registered
     against the submap of the scans in ``window`` (placed at ``chain``), from the odometry's
@@ -325,8 +332,7 @@ def _icp_chain(ranges, az, odo, max_range_m: float, range_cap_m: float, voxel_m:
     sg = _import_small_gicp()
     t0 = time.perf_counter()
     n = ranges.shape[0]
-    points = [_scan_points(ranges[k], az, max_range_m, range_cap_m) for k in range(n)]
-    sources = [_Cloud(sg, p, voxel_m) if len(p) >= _NEIGHBOURS else None for p in points]
+    points, sources = _scan_clouds(sg, ranges, az, max_range_m, range_cap_m, voxel_m)
     chain = np.empty((n, 3))
     chain[0] = odo[0]
     registered = np.zeros(n, bool)
@@ -504,8 +510,7 @@ def icp_pose_graph_slam(
     t_front = 0.0
     t_back = 0.0
     tic = time.perf_counter()
-    points = [_scan_points(ranges[k], az, max_range_m, range_cap_m) for k in range(n)]
-    sources = [_Cloud(sg, p, voxel_m) if len(p) >= _NEIGHBOURS else None for p in points]
+    points, sources = _scan_clouds(sg, ranges, az, max_range_m, range_cap_m, voxel_m)
     t_front += time.perf_counter() - tic
 
     chain = np.empty((n, 3))

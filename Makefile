@@ -33,15 +33,18 @@ demo: install
 # LIDARJAX_JAX_CACHE=off disables it).
 TEST_WORKERS ?= $(shell $(PYTHON) -c "import os; print(max(1, min(4, len(os.sched_getaffinity(0)) if hasattr(os, 'sched_getaffinity') else (os.cpu_count() or 1))))")
 # Fast tests go by file (module fixtures built once); the slow ones, a few minutes each and
-# many in one file, are handed out one by one to whichever worker is free.
-PYTEST := $(PY) -m pytest -q -n $(TEST_WORKERS) --durations=20
+# many in one file, are handed out one by one to whichever worker is free. The slow tests
+# spend much of their time in XLA's compiler, one thread per program (on 2 cores two
+# workers kept 1.3 cores busy): they run on one worker more than the cores (at most 4).
+PYTEST := $(PY) -m pytest -q --durations=20
+SLOW_WORKERS ?= $(shell $(PYTHON) -c "print(min(4, $(TEST_WORKERS) + 1))")
 
 test: install
 	$(VENV)/bin/ruff check .
-	$(PYTEST) --dist loadfile -m "not slow"
+	$(PYTEST) -n $(TEST_WORKERS) --dist loadfile -m "not slow"
 
 test-slow: install
-	$(PYTEST) --dist worksteal -m slow
+	$(PYTEST) -n $(SLOW_WORKERS) --dist worksteal -m slow
 
 test-all: test test-slow
 

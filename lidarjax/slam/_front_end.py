@@ -28,6 +28,7 @@ import contextlib
 import dataclasses
 import math
 import time
+import types
 
 import jax
 import jax.numpy as jnp
@@ -235,6 +236,15 @@ class FrontEndConfig:
             SLAM results). Each map update costs two more ray traces of the scan. The
             endpoint model (no free-space term) ignores it: its map keeps every ray's
             free length.
+
+    Compilation: the matcher is compiled once per static key (``resolution_m``,
+    ``range_cap_m``, ``blur_schedule_m``, ``n_nodes``, ``max_steps``, ``model``,
+    ``mask_unmapped``, the ``search_*`` settings, ``backend``, ``final_from_search``,
+    ``dtype`` and the window's size), about 10 s on 2 idle cores. The gates
+    (``gate_sigmas``, ``ambiguous_gate_sigmas``, ``ambiguous_margin``,
+    ``gate_stiffness``), ``rate_floor``, ``ray_floor`` and ``gap_cells`` are traced
+    arguments, and the other fields are not read by the compiled program: changing them
+    reuses it.
     """
 
     resolution_m: float = 0.05
@@ -289,7 +299,7 @@ class FrontEndConfig:
                 f"window_m ({self.window_m}) must be >= range_cap_m ({self.range_cap_m})"
             )
         # a list (e.g. from a config file) would make the settings unhashable, and the
-        # jitted matcher takes them as a static argument: kept as a tuple
+        # jitted matcher takes it in its static key: kept as a tuple
         try:
             sched = tuple(float(b) for b in self.blur_schedule_m)
         except (TypeError, ValueError):
@@ -732,11 +742,61 @@ def _ray_weights(seen, origin, res, az, rng, pose, cfg: FrontEndConfig):
     return jnp.where(rays.kind == HIT, inside & near, True)
 
 
-def _match_impl(rates, seen, origin, az, rng, graze, pose0, pred, sigmas, cfg: FrontEndConfig):
-    """Jitted core of :func:`match_scan` (``cfg`` static): ``(pose [3], n_used, mean
-    log-likelihood per used ray (nats), [3 3] information of the pose (negative Hessian
-    of the last stage's log-likelihood in the tangent space))``."""
+#: The :class:`FrontEndConfig` numbers the jitted matcher and scorer take as traced
+#: arguments: a different value reuses the compiled program (and the persistent
+#: compilation cache) instead of compiling again (a sweep over the gates, a test).
+_TRACED_FIELDS = (
+    "rate_floor",
+    "ray_floor",
+    "gap_cells",
+    "gate_sigmas",
+    "ambiguous_gate_sigmas",
+    "ambiguous_margin",
+    "gate_stiffness",
+)
+#: The fields that shape the compiled program (sizes, loop counts, branches, kernels):
+#: the jit's static key. Fields in neither tuple are not read inside the jit, so they
+#: do not cause a compilation either (``local_map_scans``, the odometry's sigmas, ...).
+_STATIC_FIELDS = (
+    "resolution_m",
+    "range_cap_m",
+    "blur_schedule_m",
+    "n_nodes",
+    "max_steps",
+    "model",
+    "mask_unmapped",
+    "search_xy_m",
+    "search_yaw_rad",
+    "search_step_yaw_rad",
+    "search_blur_m",
+    "search_exclude_m",
+    "backend",
+    "final_from_search",
+)
+
+
+def _jit_settings(cfg: FrontEndConfig, dt) -> tuple[tuple, dict]:
+    """``(static, traced)``: the values of :data:`_STATIC_FIELDS` (a hashable tuple, the
+    static key) and of :data:`_TRACED_FIELDS` as ``dt`` scalars: the jitted matcher's and
+    scorer's view of ``cfg``."""
+    static = tuple(getattr(cfg, f) for f in _STATIC_FIELDS)
+    traced = {f: jnp.asarray(getattr(cfg, f), dt) for f in _TRACED_FIELDS}
+    return static, traced
+
+
+def _settings(static: tuple, traced: dict) -> types.SimpleNamespace:
+    """The settings inside the jit, under :class:`FrontEndConfig`'s names: the static
+    fields as Python values, the traced ones as arrays."""
+    return types.SimpleNamespace(**dict(zip(_STATIC_FIELDS, static)), **traced)
+
+
+def _match_impl(rates, seen, origin, az, rng, graze, pose0, pred, sigmas, static, traced):
+    """Jitted core of :func:`match_scan` (settings from :func:`_jit_settings`): ``(pose
+    [3], n_used, mean log-likelihood per used ray (nats), [3 3] information of the pose
+    (negative Hessian of the last stage's log-likelihood in the tangent space))``."""
     from ..localization.refine import refine_pose
+
+    cfg = _settings(static, traced)
 
     res = cfg.resolution_m
     n = rates.shape[0]
@@ -810,7 +870,7 @@ def _match_impl(rates, seen, origin, az, rng, graze, pose0, pred, sigmas, cfg: F
     # nearly as good pose (margin below ambiguous_margin nats: a corridor, repeating doors)
     gate = cfg.gate_sigmas
     if n_xy > 0 or n_yaw > 0:
-        tight = min(cfg.ambiguous_gate_sigmas, cfg.gate_sigmas)
+        tight = jnp.minimum(cfg.ambiguous_gate_sigmas, cfg.gate_sigmas)
         gate = jnp.where(s_best - s_runner < cfg.ambiguous_margin, tight, gate)
 
     def plausible(p):
@@ -851,7 +911,7 @@ def _match_impl(rates, seen, origin, az, rng, graze, pose0, pred, sigmas, cfg: F
     return xy_yaw(pose), n_used, mean_ll, info, s_best, s_runner, ok
 
 
-_match_jit = jax.jit(_match_impl, static_argnames="cfg")
+_match_jit = jax.jit(_match_impl, static_argnames="static")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -904,9 +964,11 @@ def _window_inputs(grid: GridMap, center_xy, azimuths, ranges, cfg: FrontEndConf
     )
 
 
-def _score_impl(rates, seen, origin, az, rng, graze, pose, cfg: FrontEndConfig):
-    """Jitted core of :func:`score_scan` (``cfg`` static): ``(mean log-likelihood per used
-    ray, n_used)`` of the last matching stage's data term at ``pose``."""
+def _score_impl(rates, seen, origin, az, rng, graze, pose, static, traced):
+    """Jitted core of :func:`score_scan` (settings from :func:`_jit_settings`): ``(mean
+    log-likelihood per used ray, n_used)`` of the last matching stage's data term at
+    ``pose``."""
+    cfg = _settings(static, traced)
     res = cfg.resolution_m
     n = rates.shape[0]
     b = cfg.blur_schedule_m[-1]
@@ -930,7 +992,7 @@ def _score_impl(rates, seen, origin, az, rng, graze, pose, cfg: FrontEndConfig):
     return ll / jnp.maximum(n_used, 1.0), n_used
 
 
-_score_jit = jax.jit(_score_impl, static_argnames="cfg")
+_score_jit = jax.jit(_score_impl, static_argnames="static")
 
 
 def score_scan(
@@ -960,7 +1022,7 @@ def score_scan(
     context, dt = cfg.precision()
     with context:
         inputs = _window_inputs(grid, pose[:2], azimuths, ranges, cfg, dt)
-        mean_ll, n_used = _score_jit(*inputs, jnp.asarray(pose, dt), cfg)
+        mean_ll, n_used = _score_jit(*inputs, jnp.asarray(pose, dt), *_jit_settings(cfg, dt))
     return float(mean_ll), int(n_used)
 
 
@@ -1004,7 +1066,7 @@ def match_scan(
             jnp.asarray(pose0, dt),
             jnp.asarray(prior, dt),
             jnp.asarray(sig, dt),
-            cfg,
+            *_jit_settings(cfg, dt),
         )
     return MatchResult(
         np.asarray(pose, float),

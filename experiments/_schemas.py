@@ -1229,7 +1229,9 @@ class SlamPoseGraph:
     revisits: bool | None = _f()  # null: only with front_end.local_map_scans 0
     calibrate_odometry: bool = _f()
     # null: the other matching model's front end as a further chain; []: one chain
-    extra_chain_models: list[str] | None = _f(unique, each=one_of("decay_rate", "endpoint", "gicp"))
+    extra_chain_models: list[str] | None = _f(
+        unique, each=one_of("decay_rate", "endpoint", "icp", "gicp")
+    )
 
 
 @dataclass

@@ -167,7 +167,7 @@ def _error_budget(base, odo, gt, scfg) -> dict:
             scfg,
             rv if scfg.uses_revisits else None,
             base.extra_front_end_poses,
-            base.extra_chain_valid or None,  # a gicp chain's rejected registrations stay out
+            base.extra_chain_valid or None,  # icp and gicp chains: rejected registrations stay out
         )
         return absolute_trajectory_error(np.asarray(pg.poses), gt).rmse_m
 

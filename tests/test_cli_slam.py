@@ -293,41 +293,53 @@ def test_slam_without_extra_chains(office_log, tmp_path):
 
 
 @pytest.mark.slow  # ~20 s: SLAM of 12 scans
-def test_slam_gicp_chain(office_log, tmp_path):
-    """``--extra-chains gicp``: the estimate is :func:`lidarjax.slam.run_slam`'s with
-    ``extra_chain_models=("gicp",)``; the GICP chain is written as front_end_gicp.tum,
-    its weights as front_end.csv's ``graph_weight_gicp`` (empty where a registration was
-    rejected), and slam.json counts its rejected increments."""
-    pytest.importorskip("small_gicp")
+@pytest.mark.parametrize("model", ["icp", "gicp"])
+def test_slam_registration_chain(office_log, tmp_path, model):
+    """``--extra-chains icp`` / ``gicp``: the estimate is :func:`lidarjax.slam.run_slam`'s
+    with ``extra_chain_models=(model,)``; the chain is written as front_end_MODEL.tum
+    (for ``icp``: :func:`lidarjax.slam.point_icp_front_end`'s on the readings below the
+    range cap), its weights as front_end.csv's ``graph_weight_MODEL`` (empty where a
+    registration was rejected), and slam.json counts its rejected increments."""
+    if model == "gicp":
+        pytest.importorskip("small_gicp")
     from lidarjax import slam
 
     path = office_log[0]
     out = tmp_path / "g"
     args = ["slam", str(path), "-o", str(out), "--no-progress", "--scans", "0:12"]
-    assert main([*args, "--extra-chains", "gicp"]) == 0
+    assert main([*args, "--extra-chains", model]) == 0
     summary = json.loads((out / "slam.json").read_text())
-    assert summary["extra_chain_models"] == ["gicp"]
+    assert summary["extra_chain_models"] == [model]
     log = load_carmen(path)
     cap = log.usable_range_m
     front = slam.FrontEndConfig(range_cap_m=cap, window_m=cap + 2.0)
-    cfg = slam.SlamConfig(front=front, back_end="none", extra_chain_models=("gicp",))
+    cfg = slam.SlamConfig(front=front, back_end="none", extra_chain_models=(model,))
     ref = slam.run_slam(
         np.minimum(log.ranges_m[:12], cap), log.azimuths_rad, log.odometry[:12], cfg
     )
     _, est = _poses_of_tum(out / "trajectory.tum")
     np.testing.assert_allclose(est, ref.poses, atol=1e-9)
-    _, chain = _poses_of_tum(out / "front_end_gicp.tum")
+    _, chain = _poses_of_tum(out / f"front_end_{model}.tum")
     np.testing.assert_allclose(chain, ref.extra_front_end_poses[0], atol=1e-9)
+    if model == "icp":
+        own = slam.point_icp_front_end(
+            np.minimum(log.ranges_m[:12], cap),
+            log.azimuths_rad,
+            log.odometry[:12],
+            range_cap_m=cap,
+        )
+        np.testing.assert_array_equal(ref.extra_front_end_poses[0], own.poses)
+        np.testing.assert_array_equal(ref.extra_chain_valid[0], own.registered[1:])
     assert ref.extra_chain_valid[0].shape == (11,) and ref.extra_chain_valid[0].any()
     head, *rows = (out / "front_end.csv").read_text().splitlines()
-    assert head.split(",")[-2:] == ["graph_weight", "graph_weight_gicp"]
+    assert head.split(",")[-2:] == ["graph_weight", f"graph_weight_{model}"]
     cells = [r.split(",")[-1] for r in rows[1:]]
     for c, ok, w in zip(cells, ref.extra_chain_valid[0], ref.chain_weights[1]):
         assert (c != "") == bool(ok)
         if ok:
             assert float(c) == pytest.approx(w, rel=1e-5)
     rejected = int(np.sum(ref.chain_weights[1] < slam.REJECTED_WEIGHT))
-    assert summary["pose_graph"]["increments_rejected"]["gicp"] == rejected
+    assert summary["pose_graph"]["increments_rejected"][model] == rejected
 
 
 @pytest.mark.slow  # ~60 s: SLAM of the 30 scans, twice
@@ -537,7 +549,7 @@ def test_slam_odometry_choice(office_log, capsys):
         (["--scans", "3:4"], "--scans", "at least 2"),
         (["--model", "icp"], "--model", "invalid choice"),
         (["--back-end", "gtsam"], "--back-end", "invalid choice"),
-        (["--extra-chains", "icp"], "--extra-chains", "comma-separated"),
+        (["--extra-chains", "lidar"], "--extra-chains", "comma-separated"),
         (["--extra-chains", "gicp,gicp"], "--extra-chains", "must not repeat"),
         (["--extra-chains", "endpoint,,"], "--extra-chains", "comma-separated"),
         (["--extra-chains", "endpoint,endpoint"], "--extra-chains", "must not repeat"),

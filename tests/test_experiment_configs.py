@@ -237,8 +237,8 @@ VALUE_ERRORS = [
     ("slam", ["loops.short_separation=2"], "loops.short_separation = 2", "0 (off) or >= 3"),
     (
         "slam",
-        ["pose_graph.extra_chain_models=[endpoint,icp]"],
-        "pose_graph.extra_chain_models[1] = 'icp'",
+        ["pose_graph.extra_chain_models=[endpoint,lidar]"],
+        "pose_graph.extra_chain_models[1] = 'lidar'",
         "must be one of",
     ),
     (

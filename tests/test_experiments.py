@@ -792,7 +792,7 @@ def test_slam_front_end_rate_prior_reaches_the_front_end(tmp_path, monkeypatch):
         raise RuntimeError("stop here")
 
     for overrides, want, revisits, calibrate, chains in (
-        ([], (0.0, 0.0, 100), False, True, ("endpoint",)),
+        ([], (0.0, 0.0, 100), False, True, ("endpoint", "icp")),
         (
             [
                 "front_end.prior_hits=0.25",
@@ -802,19 +802,26 @@ def test_slam_front_end_rate_prior_reaches_the_front_end(tmp_path, monkeypatch):
             (0.25, 0.75, 12),
             False,
             True,
-            ("endpoint",),
+            ("endpoint", "icp"),
         ),
-        (["front_end.local_map_scans=0"], (0.0, 0.0, 0), True, True, ("endpoint",)),
-        (["pose_graph.revisits=true"], (0.0, 0.0, 100), True, True, ("endpoint",)),
+        (["front_end.local_map_scans=0"], (0.0, 0.0, 0), True, True, ("endpoint", "icp")),
+        (["pose_graph.revisits=true"], (0.0, 0.0, 100), True, True, ("endpoint", "icp")),
         (
             ["front_end.local_map_scans=0", "pose_graph.revisits=false"],
             (0.0, 0.0, 0),
             False,
             True,
-            ("endpoint",),
+            ("endpoint", "icp"),
         ),
-        (["pose_graph.calibrate_odometry=false"], (0.0, 0.0, 100), False, False, ("endpoint",)),
+        (
+            ["pose_graph.calibrate_odometry=false"],
+            (0.0, 0.0, 100),
+            False,
+            False,
+            ("endpoint", "icp"),
+        ),
         (["pose_graph.extra_chain_models=[]"], (0.0, 0.0, 100), False, True, ()),
+        (["pose_graph.extra_chain_models=[endpoint]"], (0.0, 0.0, 100), False, True, ("endpoint",)),
         (
             ["pose_graph.extra_chain_models=[endpoint,decay_rate]"],
             (0.0, 0.0, 100),

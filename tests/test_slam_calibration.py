@@ -180,7 +180,12 @@ def test_run_slam_gives_the_pose_graph_the_calibrated_odometry(monkeypatch, cali
     loops = Loops(e, between_np(truth[e[:, 0]], truth[e[:, 1]]), 2)
     monkeypatch.setattr(pipeline, "run_front_end", fake_front_end)
     monkeypatch.setattr(pipeline, "find_loops", lambda *a, **k: loops)
-    cfg = SlamConfig(back_end="none", loop_rounds=1, calibrate_odometry=calibrate)
+    cfg = SlamConfig(
+        back_end="none",
+        loop_rounds=1,
+        calibrate_odometry=calibrate,
+        extra_chain_models=("endpoint",),  # no ICP chain on these fake readings
+    )
     ranges, az = np.full((len(truth), 4), 5.0), np.linspace(-1, 1, 4)
     r = run_slam(ranges, az, odo, cfg)
     if calibrate:
@@ -192,6 +197,6 @@ def test_run_slam_gives_the_pose_graph_the_calibrated_odometry(monkeypatch, cali
         assert r.odometry_calibration is None
         np.testing.assert_allclose(r.odometry, odo)
     # the pose graph is the one over that odometry
-    assert len(r.extra_front_end_poses) == 1  # the default endpoint chain (the same here)
+    assert len(r.extra_front_end_poses) == 1  # the endpoint chain (the same here)
     pg = front_end_pose_graph(truth, r.odometry, loops, cfg, extra_chains=r.extra_front_end_poses)
     np.testing.assert_allclose(r.pose_graph_poses, np.asarray(pg.poses), atol=1e-9)

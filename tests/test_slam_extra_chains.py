@@ -137,7 +137,7 @@ def test_bad_extra_chains_raise():
     with pytest.raises(ValueError, match="robust_chain"):
         front_end_pose_graph(a, odo, NO_LOOPS, SlamConfig(robust_chain=False), extra_chains=[b])
     with pytest.raises(ValueError, match="extra_chain_models"):
-        SlamConfig(extra_chain_models=("icp",))
+        SlamConfig(extra_chain_models=("lidar",))
     with pytest.raises(ValueError, match="extra_chain_models"):
         SlamConfig(extra_chain_models=["endpoint"])
     with pytest.raises(ValueError, match="must not repeat"):
@@ -146,9 +146,12 @@ def test_bad_extra_chains_raise():
         SlamConfig(extra_chain_models=("endpoint",), robust_chain=False)
 
 
-def test_chain_models_default_to_the_other_model():
-    assert SlamConfig().chain_models == ("endpoint",)
-    assert SlamConfig(front=FrontEndConfig(model="endpoint")).chain_models == ("decay_rate",)
+def test_chain_models_default_to_the_other_model_and_icp():
+    assert SlamConfig().chain_models == ("endpoint", "icp")
+    assert SlamConfig(front=FrontEndConfig(model="endpoint")).chain_models == (
+        "decay_rate",
+        "icp",
+    )
     assert SlamConfig(robust_chain=False).chain_models == ()
     assert SlamConfig(extra_chain_models=()).chain_models == ()
     two = ("endpoint", "decay_rate")
@@ -166,22 +169,35 @@ def test_run_slam_runs_each_extra_front_end_and_fuses_its_chain(monkeypatch):
         n = rng.shape[0]
         return FrontEndResult(p, np.zeros(n), 0.5, np.zeros(n), None, None, np.ones(n, bool))
 
+    third = _noisy_pair(15, n=100)[2]  # the ICP chain: a third front end's noise
+    reg = np.ones(len(truth), bool)
+    reg[[30, 31]] = False
+
+    def fake_icp(rng, azimuths, odometry, cap, icfg, progress):
+        calls.append("icp")
+        np.testing.assert_array_equal(odometry, odo)
+        return third, reg, 0.25
+
     e = np.array([[2, 90], [5, 95]])
     loops = Loops(e, between_np(truth[e[:, 0]], truth[e[:, 1]]), 2)
     monkeypatch.setattr(pipeline, "run_front_end", fake_front_end)
+    monkeypatch.setattr(pipeline, "point_icp_chain", fake_icp)
     monkeypatch.setattr(pipeline, "find_loops", lambda *a_, **k: loops)
-    cfg = SlamConfig(back_end="none", loop_rounds=1)  # default: an endpoint chain
+    cfg = SlamConfig(back_end="none", loop_rounds=1)  # default: endpoint and ICP chains
     ranges, az = np.full((len(truth), 4), 5.0), np.linspace(-1, 1, 4)
     r = run_slam(ranges, az, odo, cfg)
-    assert calls == ["decay_rate", "endpoint"]
-    assert len(r.extra_front_end_poses) == 1
+    assert calls == ["decay_rate", "endpoint", "icp"]
+    assert len(r.extra_front_end_poses) == 2
     np.testing.assert_array_equal(r.extra_front_end_poses[0], b)
+    np.testing.assert_array_equal(r.extra_front_end_poses[1], third)
     np.testing.assert_array_equal(r.front_end_poses, a)
-    assert r.seconds["front_end"] == 0.5 and r.seconds["extra_front_ends"] == 0.5
+    assert r.seconds["front_end"] == 0.5 and r.seconds["extra_front_ends"] == 0.75
     # the calibration follows the first front end
     c = calibrate_odometry(a, odo, cfg.front, valid=np.ones(len(truth) - 1, bool))
     assert r.odometry_calibration == c
-    pg = front_end_pose_graph(a, c.apply(odo), loops, cfg, extra_chains=[b])
+    pg = front_end_pose_graph(
+        a, c.apply(odo), loops, cfg, extra_chains=[b, third], extra_chain_valid=[None, reg[1:]]
+    )
     np.testing.assert_allclose(r.pose_graph_poses, np.asarray(pg.poses), atol=1e-9)
     # and without the extra model the graph is the single chain's
     calls.clear()
@@ -224,7 +240,7 @@ def test_run_slam_reports_what_the_pose_graph_rejected(monkeypatch):
     z = between_np(truth[e[:, 0]], truth[e[:, 1]])
     z[4, :2] += [2.0, -1.0]  # an aliased place: 2.2 m off
     loops = Loops(e, z, 5)
-    cfg = SlamConfig(back_end="none", loop_rounds=1)
+    cfg = SlamConfig(back_end="none", loop_rounds=1, extra_chain_models=("endpoint",))
     r = _fake_run_slam(monkeypatch, a, b, loops, cfg, odo)
     # the same graph re-solved: its weights, split as front_end_pose_graph orders them
     pg = front_end_pose_graph(a, r.odometry, loops, cfg, revisits=r.revisits, extra_chains=[b])
@@ -251,7 +267,8 @@ def test_run_slam_reports_what_the_pose_graph_rejected(monkeypatch):
 def test_run_slam_on_one_scan_reports_no_pose_graph(monkeypatch):
     one = np.zeros((1, 3))
     r = _fake_run_slam(monkeypatch, one, one, NO_LOOPS, SlamConfig(back_end="none"), one)
-    assert r.loop_weights.shape == (0,) and r.chain_weights.shape == (2, 0)
+    assert r.loop_weights.shape == (0,) and r.chain_weights.shape == (3, 0)  # + the ICP chain
+    np.testing.assert_array_equal(r.extra_front_end_poses[1], one)
     assert r.pose_graph_cost == 0.0
 
 
@@ -278,7 +295,9 @@ def test_run_slam_short_loops_join_the_pose_graph(monkeypatch):
     monkeypatch.setattr(pipeline, "run_front_end", fake_front_end)
     monkeypatch.setattr(pipeline, "find_loops", fake_find_loops)
     ranges, az = np.full((len(a), 4), 5.0), np.linspace(-1, 1, 4)
-    cfg = SlamConfig(back_end="none", loop_rounds=1, short_loop_separation=7)
+    cfg = SlamConfig(
+        back_end="none", loop_rounds=1, short_loop_separation=7, extra_chain_models=("endpoint",)
+    )
     r = run_slam(ranges, az, odo, cfg)
     assert len(calls) == 2
     poses, lcfg, kw = calls[1]
@@ -362,7 +381,7 @@ def test_bad_extra_chain_masks_raise():
 def test_gicp_is_a_chain_model():
     from lidarjax.slam import CHAIN_MODELS
 
-    assert CHAIN_MODELS == ("decay_rate", "endpoint", "gicp")
+    assert CHAIN_MODELS == ("decay_rate", "endpoint", "icp", "gicp")
     cfg = SlamConfig(extra_chain_models=("endpoint", "gicp"))
     assert cfg.chain_models == ("endpoint", "gicp")
     with pytest.raises(ValueError, match="extra_chain_models"):

@@ -19,9 +19,10 @@ __all__ = ["BACK_ENDS", "CHAINS", "DRIFT", "MATCHING", "cmd_slam"]
 MATCHING = ("decay-rate", "endpoint")
 """``--model``: the scan-matching model (:data:`lidarjax.slam.MATCHING_MODELS`, spelled
 with a hyphen as ``lidarjax map`` spells its models)."""
-CHAINS = (*MATCHING, "gicp")
+CHAINS = (*MATCHING, "icp", "gicp")
 """``--extra-chains``' models (:data:`lidarjax.slam.CHAIN_MODELS`): a matching model's
-front end, or ``gicp``, small_gicp's scan-to-submap registration
+front end; ``icp``, point-to-line ICP in JAX (:func:`lidarjax.slam.point_icp_front_end`);
+or ``gicp``, small_gicp's scan-to-submap registration
 (:func:`lidarjax.slam.icp_front_end`; needs ``pip install 'lidarjax[slam]'``)."""
 BACK_ENDS = ("none", "joint", "alternating")
 """``--back-end``: :class:`lidarjax.slam.SlamConfig`'s ``back_end`` (default none)."""
@@ -189,7 +190,7 @@ def _write_front_end(path, idx, res, chain_models) -> None:
     and the final pose graph's weight of the increment from the scan before
     (``SlamResult.chain_weights``; below ``slam.REJECTED_WEIGHT``: the graph overruled
     it), then that of each further front end's increment (``graph_weight_MODEL``; empty
-    where the increment is not in the graph: a rejected ``gicp`` registration)."""
+    where the increment is not in the graph: a rejected ``icp`` or ``gicp`` registration)."""
     names = ["graph_weight"] + [f"graph_weight_{m.replace('_', '-')}" for m in chain_models]
     rows = ["scan,rays_used,sd_x_m,sd_y_m,sd_yaw_rad,passed_gate,seconds," + ",".join(names)]
     cw = np.asarray(res.chain_weights, float)

@@ -43,6 +43,8 @@ from ._pipeline import SlamConfig as SlamConfig
 from ._pipeline import SlamResult as SlamResult
 from ._pipeline import front_end_pose_graph as front_end_pose_graph
 from ._pipeline import run_slam as run_slam
+from ._point_icp import PointIcpConfig as PointIcpConfig
+from ._point_icp import point_icp_front_end as point_icp_front_end
 from ._pose_graph import PoseGraphResult as PoseGraphResult
 from ._pose_graph import optimize_pose_graph as optimize_pose_graph
 from ._search import correlative_search as correlative_search

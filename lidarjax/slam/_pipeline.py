@@ -2,8 +2,9 @@
 
 :func:`run_slam` runs, on raw odometry and scans:
 
-1. :func:`~lidarjax.slam.run_front_end` (decay-rate lidar odometry, online), and a
-   second front end with the endpoint model (``SlamConfig.extra_chain_models``);
+1. :func:`~lidarjax.slam.run_front_end` (decay-rate lidar odometry, online), a second
+   front end with the endpoint model and a point-to-line ICP chain
+   (:func:`~lidarjax.slam.point_icp_front_end`; ``SlamConfig.extra_chain_models``);
 2. :func:`~lidarjax.slam.find_loops` and :func:`~lidarjax.slam.find_revisits` on the
    front end's trajectory;
 3. :func:`front_end_pose_graph`: :func:`~lidarjax.slam.optimize_pose_graph` over the
@@ -37,6 +38,7 @@ from ._front_end import (
     run_front_end,
 )
 from ._loops import LoopConfig, Loops, find_loops, find_revisits
+from ._point_icp import PointIcpConfig, point_icp_chain
 from ._pose_graph import PoseGraphResult, optimize_pose_graph
 
 __all__ = [
@@ -48,11 +50,13 @@ __all__ = [
     "run_slam",
 ]
 
-CHAIN_MODELS = (*MATCHING_MODELS, "gicp")
+CHAIN_MODELS = (*MATCHING_MODELS, "icp", "gicp")
 """What :attr:`SlamConfig.extra_chain_models` may name: a front end with a matching
-model (:data:`~lidarjax.slam.MATCHING_MODELS`), or ``"gicp"``, small_gicp's
-scan-to-submap registration (:func:`~lidarjax.slam.icp_front_end`, the classical
-baseline's front end; needs small_gicp, ``pip install 'lidarjax[slam]'``)."""
+model (:data:`~lidarjax.slam.MATCHING_MODELS`); ``"icp"``, point-to-line ICP
+scan-to-submap registration in JAX (:func:`~lidarjax.slam.point_icp_front_end`,
+settings :attr:`SlamConfig.icp`); or ``"gicp"``, small_gicp's scan-to-submap
+registration (:func:`~lidarjax.slam.icp_front_end`, the classical baseline's front end;
+needs small_gicp, ``pip install 'lidarjax[slam]'``)."""
 
 GICP_VOXEL_M = 0.05
 """Voxel size (m) of the ``"gicp"`` chain's downsampling (:func:`~lidarjax.slam.icp_front_end`'s
@@ -122,9 +126,11 @@ class SlamConfig:
             and orebro (six seeds) within 2 mm by mean. The front end still predicts
             from the raw odometry.
         extra_chain_models: front-end models (:data:`CHAIN_MODELS`: ``"decay_rate"``,
-            ``"endpoint"``, ``"gicp"``) run as further front ends, with ``front``'s settings
-            otherwise (``"gicp"``: :func:`~lidarjax.slam.icp_front_end` on the readings
-            below ``front.range_cap_m``, its rejected registrations left out of the graph),
+            ``"endpoint"``, ``"icp"``, ``"gicp"``) run as further front ends, with
+            ``front``'s settings otherwise (``"icp"``:
+            :func:`~lidarjax.slam.point_icp_front_end` with :attr:`icp`, and ``"gicp"``:
+            :func:`~lidarjax.slam.icp_front_end`, on the readings below
+            ``front.range_cap_m``, their rejected registrations left out of the graph),
             each an independent lidar odometry from the same raw odometry. Their increments
             join the pose graph as further Cauchy-robust chains; with ``k`` chains in all,
             every chain's sigmas are ``sqrt(k)`` times ``chain_sigma_*`` (chains that agree
@@ -132,13 +138,18 @@ class SlamConfig:
             rejects its increment, another front end's increment bridges the gap instead of
             the odometry alone. The loop search, the calibration, the graph's starting poses
             and the back end follow the first front end (``front``). Needs ``robust_chain``.
-            None (default): the other model (:attr:`chain_models`: an endpoint front end
-            beside a decay-rate one and the reverse); ``()``: one chain. Pose graph ATE with
-            the endpoint chain beside the decay-rate one (six drift seeds, mean): orebro
-            0.242 -> 0.177 m (better on all six), intel 0.063 -> 0.061 m, fhw 0.128 -> 0.138
-            m (worse on all six); on logs nobody tuned to (drift seeds 0-2 or 0-1) edmonton
-            0.719 -> 0.521, freiburg-101 0.049 -> 0.045, csail 0.144 -> 0.129, belgioioso
-            0.090 -> 0.084 m (docs/results/slam.md, stop 64).
+            None (default): the other matching model and the ICP chain
+            (:attr:`chain_models`: endpoint and ICP front ends beside a decay-rate one,
+            decay-rate and ICP beside an endpoint one); ``()``: one chain. Pose graph ATE,
+            mean (docs/results/slam.md): the endpoint chain beside the decay-rate one (stop
+            64, six drift seeds) orebro 0.242 -> 0.177 m (better on all six), intel 0.063
+            -> 0.061 m, fhw 0.128 -> 0.138 m (worse on all six); on logs nobody tuned to
+            edmonton 0.719 -> 0.521, freiburg-101 0.049 -> 0.045, csail 0.144 -> 0.129,
+            belgioioso 0.090 -> 0.084 m. The ICP chain added (stop 68, 17 runs re-solved)
+            intel 0.053 -> 0.050 m (2 seeds), fhw 0.133 -> 0.123 m (3), orebro 0.177 ->
+            0.158 m (6), edmonton 0.525 -> 0.415 m (3), freiburg-101, csail and belgioioso
+            (1 each) 0.045 -> 0.045, 0.131 -> 0.101 and 0.074 -> 0.070 m: better on 13
+            runs, worse on 4; it costs 1-8 s a log.
         short_loop_separation: > 0 (at least 3): after the loop rounds, a further loop
             search along the pose graph matches every scan against the submap of the
             nearest earlier scan at least this many scans back
@@ -155,6 +166,7 @@ class SlamConfig:
             -> 0.079, edmonton 0.521 -> 0.527 m (better on seven runs of ten). It adds a
             match per scan: 0.9-1.9 times the first loop search's time
             (benchmarks/slam_short_loops.py).
+        icp: the ``"icp"`` chain's settings (:class:`~lidarjax.slam.PointIcpConfig`).
     """
 
     front: FrontEndConfig = dataclasses.field(default_factory=FrontEndConfig)
@@ -175,6 +187,7 @@ class SlamConfig:
     calibrate_odometry: bool = True
     extra_chain_models: tuple[str, ...] | None = None
     short_loop_separation: int = 0
+    icp: PointIcpConfig = dataclasses.field(default_factory=PointIcpConfig)
 
     def __post_init__(self):
         if self.back_end not in ("joint", "alternating", "none"):
@@ -205,6 +218,8 @@ class SlamConfig:
         v = self.revisit_min_overlap
         if not (isinstance(v, (int, float)) and not isinstance(v, bool) and 0 < v <= 1):
             raise ValueError(f"revisit_min_overlap must be in (0, 1], got {v!r}")
+        if not isinstance(self.icp, PointIcpConfig):
+            raise ValueError(f"icp must be a PointIcpConfig, got {type(self.icp).__name__}")
         v = self.short_loop_separation
         if isinstance(v, bool) or not isinstance(v, int) or not (v == 0 or v >= 3):
             raise ValueError(f"short_loop_separation must be 0 (off) or an int >= 3, got {v!r}")
@@ -226,13 +241,13 @@ class SlamConfig:
     @property
     def chain_models(self) -> tuple[str, ...]:
         """The models of :func:`run_slam`'s further front ends: ``extra_chain_models``
-        if set, else the matching model other than ``front.model`` when ``robust_chain``
-        (none without it)."""
+        if set, else the matching model other than ``front.model`` and ``"icp"`` when
+        ``robust_chain`` (none without it)."""
         if self.extra_chain_models is not None:
             return self.extra_chain_models
         if not self.robust_chain:
             return ()
-        return tuple(m for m in MATCHING_MODELS if m != self.front.model)
+        return (*(m for m in MATCHING_MODELS if m != self.front.model), "icp")
 
     @property
     def short_loop_config(self) -> LoopConfig:
@@ -549,6 +564,12 @@ def run_slam(
         if m == "gicp":
             cap = cfg.front.range_cap_m  # the front end's no-returns: readings at the cap
             p, ok, s = _icp_chain(rng, az, odo, cap, cap, GICP_VOXEL_M, progress)
+            extra.append(p)
+            extra_valid.append(np.asarray(ok[1:], bool))
+            secs["extra_front_ends"] += s
+            continue
+        if m == "icp":
+            p, ok, s = point_icp_chain(rng, az, odo, cfg.front.range_cap_m, cfg.icp, progress)
             extra.append(p)
             extra_valid.append(np.asarray(ok[1:], bool))
             secs["extra_front_ends"] += s

@@ -149,7 +149,7 @@ class SlamConfig:
             intel 0.053 -> 0.050 m (2 seeds), fhw 0.133 -> 0.123 m (3), orebro 0.177 ->
             0.158 m (6), edmonton 0.525 -> 0.415 m (3), freiburg-101, csail and belgioioso
             (1 each) 0.045 -> 0.045, 0.131 -> 0.101 and 0.074 -> 0.070 m: better on 13
-            runs, worse on 4; it costs 1-8 s a log.
+            runs, worse on 4; it costs 2-8 s a log.
         short_loop_separation: > 0 (at least 3): after the loop rounds, a further loop
             search along the pose graph matches every scan against the submap of the
             nearest earlier scan at least this many scans back

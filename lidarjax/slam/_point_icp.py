@@ -26,11 +26,12 @@ no optional dependency and runs as one compiled ``lax.scan`` (CPU or GPU):
 
 The chain runs in float32 whatever JAX's default, relative to its first pose, in
 compiled blocks of :data:`BLOCK_SCANS` scans. The defaults' last radius (0.1 m) and
-Cauchy width were set on orebro (drift seed 0); on the shared logs' drifting odometry
-(stop 68, docs/results/slam.md) its increments are a median 2.2 / 3.4 / 2.4 / 4.6 cm
-off the corrected poses on intel / fhw / orebro / edmonton (small_gicp's chain 2.3 /
-3.6 / 2.7 / 4.7 cm), with 2-5 gross errors per log where small_gicp's has 1-10, at
-110-280 scans/s on one CPU core (small_gicp's chain: 9-20).
+Cauchy width were set on orebro (drift seed 0). On the shared logs' drifting odometry
+(stop 68, docs/results/slam.md; benchmarks/slam_icp_chain.py) its increments are a
+median 2.2 / 3.4 / 2.4 / 4.7 cm off the corrected poses on intel / fhw / orebro /
+edmonton with 1-2 gross errors per log (small_gicp's chain in the same run: 2.3 / 3.3
+/ 2.8 / 4.6 cm, 3-9 gross errors), at 138-253 scans/s once compiled on a 2-core AMD
+EPYC (small_gicp's chain 60-94 scans/s).
 """
 
 from __future__ import annotations

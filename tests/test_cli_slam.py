@@ -96,11 +96,13 @@ def test_slam_outputs(office_slam, office_log):
     assert ate_fe < 0.075 and ate < ate_odo, (ate_fe, ate, ate_odo)
     summary = json.loads((out / "slam.json").read_text())
     assert summary["n_scans"] == N_SCANS and summary["odometry"] == "the log's"
-    # the default further chain: an endpoint front end beside the decay-rate one
-    assert summary["extra_chain_models"] == ["endpoint"]
-    _, fe_ep = _poses_of_tum(out / "front_end_endpoint.tum")
-    assert fe_ep.shape == fe.shape and np.abs(fe_ep - fe).max() > 1e-6
-    assert absolute_trajectory_error(fe_ep, truth).rmse_m < ate_odo
+    # the default further chains: an endpoint front end and the ICP chain beside the
+    # decay-rate one
+    assert summary["extra_chain_models"] == ["endpoint", "icp"]
+    for name in ("front_end_endpoint.tum", "front_end_icp.tum"):
+        _, chain = _poses_of_tum(out / name)
+        assert chain.shape == fe.shape and np.abs(chain - fe).max() > 1e-6
+        assert absolute_trajectory_error(chain, truth).rmse_m < ate_odo
     # the log's largest reading (a wall, 18.98 m) reads as its no-return value, so the
     # usable range (18.60 m) is below the 20 m default and caps the front end
     usable = load_carmen(office_log[0]).usable_range_m
@@ -127,12 +129,17 @@ def test_slam_outputs(office_slam, office_log):
     fe_rows = np.genfromtxt(out / "front_end.csv", delimiter=",", names=True)
     assert fe_rows.dtype.names == (
         "scan", "rays_used", "sd_x_m", "sd_y_m", "sd_yaw_rad", "passed_gate", "seconds",
-        "graph_weight", "graph_weight_endpoint",
+        "graph_weight", "graph_weight_endpoint", "graph_weight_icp",
     )  # fmt: skip
     for col, model in (("graph_weight", "decay-rate"), ("graph_weight_endpoint", "endpoint")):
         gw = fe_rows[col]
         assert np.isnan(gw[0]) and np.all((gw[1:] > 0) & (gw[1:] <= 1)), col
         assert verdicts["increments_rejected"][model] == np.sum(gw[1:] < 0.1)
+    # the ICP chain's: empty (NaN) where its registration was rejected
+    gw = fe_rows["graph_weight_icp"][1:]
+    inside = ~np.isnan(gw)
+    assert inside.mean() > 0.9 and np.all((gw[inside] > 0) & (gw[inside] <= 1))
+    assert verdicts["increments_rejected"]["icp"] == np.sum(gw[inside] < 0.1)
     np.testing.assert_array_equal(fe_rows["scan"], np.arange(N_SCANS))
     assert fe_rows["rays_used"][0] == 0 and np.isnan(fe_rows["sd_x_m"][0])
     assert np.all(fe_rows["rays_used"][1:] > 0.5 * N_BEAMS)
@@ -172,6 +179,8 @@ def test_slam_is_run_slam_on_the_log(office_slam, office_log):
     # the final pose graph's weights: of each front end's increments and of the loops
     np.testing.assert_allclose(rows["graph_weight"][1:], ref.chain_weights[0], rtol=1e-5)
     np.testing.assert_allclose(rows["graph_weight_endpoint"][1:], ref.chain_weights[1], rtol=1e-5)
+    np.testing.assert_allclose(rows["graph_weight_icp"][1:], ref.chain_weights[2], rtol=1e-5)
+    np.testing.assert_array_equal(np.isnan(ref.chain_weights[2]), ~ref.extra_chain_valid[1])
     _, *loop_rows = (out / "loops.csv").read_text().splitlines()
     lw = np.array([float(r.split(",")[-1]) for r in loop_rows])
     np.testing.assert_allclose(

@@ -576,14 +576,16 @@ def test_slam_small(tmp_path):
     assert abs(back["log_likelihood_per_ray"] - ref["log_likelihood_per_ray"]) < 0.01
     assert per["icp_gtsam"]["ate_rmse_m"] < per["odometry"]["ate_rmse_m"]
     assert per["decay_rate_joint"]["front_end_scans_per_s"] > 0
-    # the default further chain: an endpoint front end, and the graph without it
+    # the default further chains: an endpoint front end and the ICP chain, and the graph
+    # without them
     pg = per["decay_rate_pose_graph"]
-    assert pg["extra_chain_models"] == ["endpoint"] and pg["seconds_extra_front_ends"] > 0
-    assert len(pg["extra_front_end_ate_rmse_m"]) == 1
-    assert np.isfinite(pg["extra_front_end_ate_rmse_m"][0])
+    assert pg["extra_chain_models"] == ["endpoint", "icp"]
+    assert pg["seconds_extra_front_ends"] > 0
+    assert len(pg["extra_front_end_ate_rmse_m"]) == 2
+    assert np.all(np.isfinite(pg["extra_front_end_ate_rmse_m"]))
     assert np.isfinite(pg["pose_graph_one_chain_ate_rmse_m"])
     # what the final pose graph rejected: counts per front end, at most every increment
-    assert set(pg["increments_rejected"]) == {"decay_rate", "endpoint"}
+    assert set(pg["increments_rejected"]) == {"decay_rate", "endpoint", "icp"}
     assert all(0 <= c <= 39 for c in pg["increments_rejected"].values())
     assert 0 <= pg["loops_rejected"] <= pg["n_loops"]
     assert per["decay_rate_joint"]["seconds_back_end"] > 0

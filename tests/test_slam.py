@@ -1269,12 +1269,15 @@ def test_run_slam_end_to_end(office_revisit_scans, n_local):
     r = run_slam(ranges, AZ, odo, cfg)
     n = truth.shape[0]
     assert isinstance(r, SlamResult)
-    # the default second chain: an endpoint front end, an odometry of its own
-    assert len(r.extra_front_end_poses) == 1
+    # the default further chains: an endpoint front end and the ICP chain, each an
+    # odometry of its own
+    assert len(r.extra_front_end_poses) == 2
     for p in (r.poses, r.front_end_poses, r.pose_graph_poses, *r.extra_front_end_poses):
         assert p.shape == (n, 3) and np.all(np.isfinite(p))
     ate_odo = absolute_trajectory_error(odo, truth).rmse_m
-    assert absolute_trajectory_error(r.extra_front_end_poses[0], truth).rmse_m < ate_odo
+    for p in r.extra_front_end_poses:
+        assert absolute_trajectory_error(p, truth).rmse_m < ate_odo
+    assert r.extra_chain_valid[1].shape == (n - 1,) and r.extra_chain_valid[1].mean() > 0.9
     assert len(r.loops.edges) > 0
     # the revisits only with a whole-map front end (SlamConfig.revisits None)
     assert (len(r.revisits.edges) > 0) == (n_local == 0)

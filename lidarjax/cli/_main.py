@@ -339,7 +339,7 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="MODELS",
         help="further front ends whose increments join the pose graph as further robust "
         "chains: 'auto' (default: the other matching model, endpoint beside decay-rate "
-        "and the reverse), 'none', or a comma-separated list of decay-rate, endpoint, "
+        "and the reverse, and icp), 'none', or a comma-separated list of decay-rate, endpoint, "
         "icp (point-to-line ICP, built in), gicp (small_gicp's scan-to-submap "
         "registration); the rejected registrations of icp and gicp stay out of the "
         "graph; their trajectories are written as front_end_MODEL.tum",

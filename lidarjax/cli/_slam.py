@@ -50,7 +50,7 @@ ODOMETRY_SIGMAS = (
 
 
 def _extra_chains(value: str) -> tuple[str, ...] | None:
-    """``--extra-chains``: None for 'auto' (SlamConfig's default: the other model), ()
+    """``--extra-chains``: None for 'auto' (SlamConfig's default: the other model and icp), ()
     for 'none', else the comma-separated models (as SlamConfig spells them)."""
     v = value.strip()
     if v == "auto":

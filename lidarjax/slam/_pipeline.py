@@ -561,17 +561,14 @@ def run_slam(
     extra, extra_valid = [], []
     secs["extra_front_ends"] = 0.0
     for m in cfg.chain_models:
-        if m == "gicp":
+        if m in ("icp", "gicp"):
             cap = cfg.front.range_cap_m  # the front end's no-returns: readings at the cap
-            p, ok, s = _icp_chain(rng, az, odo, cap, cap, GICP_VOXEL_M, progress)
+            if m == "icp":
+                p, ok, s = point_icp_chain(rng, az, odo, cap, cfg.icp, progress)
+            else:
+                p, ok, s = _icp_chain(rng, az, odo, cap, cap, GICP_VOXEL_M, progress)
             extra.append(p)
-            extra_valid.append(np.asarray(ok[1:], bool))
-            secs["extra_front_ends"] += s
-            continue
-        if m == "icp":
-            p, ok, s = point_icp_chain(rng, az, odo, cfg.front.range_cap_m, cfg.icp, progress)
-            extra.append(p)
-            extra_valid.append(np.asarray(ok[1:], bool))
+            extra_valid.append(np.asarray(ok[1:], bool))  # rejected registrations: out
             secs["extra_front_ends"] += s
             continue
         x = run_front_end(rng, az, odo, dataclasses.replace(cfg.front, model=m), progress=progress)

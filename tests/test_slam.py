@@ -575,6 +575,70 @@ def test_grid_map_window_pads_with_zeros():
     assert r[inside].any()
 
 
+def _office_scans(n=11, cap=10.0):
+    world = make_office(0)
+    poses = world.trajectory(100, jitter_m=0.2)[20 : 20 + n]
+    az = np.linspace(-np.pi / 2, np.pi / 2, 181)
+    ranges = simulate_scans(world, poses, az, max_range_m=cap + 2.0, noise_sigma_m=0.01, seed=3)
+    return poses, az, ranges
+
+
+@pytest.mark.parametrize("grazing_m", [0.0, 0.05])
+def test_grid_map_add_scans_equals_adding_each_scan(grazing_m):
+    # the batched trace on a grid spanning the scans against one add_scan per scan (a
+    # grid of twice the cap around each): the same cells, the lengths to float32
+    # round-off (summed over all the scans' rays instead of per scan)
+    poses, az, ranges = _office_scans()
+    assert np.any(ranges >= 10.0) and np.any(ranges < 10.0)  # returns and no-returns
+    each, batch = (GridMap(0.05, 10.0, grazing_m=grazing_m) for _ in range(2))
+    for p, r in zip(poses, ranges):
+        each.add_scan(p, az, r)
+    batch.add_scans(poses, az, ranges)
+    h1, r1, o1 = each.window([0.0, 0.0], 800)
+    h2, r2, o2 = batch.window([0.0, 0.0], 800)
+    np.testing.assert_array_equal(o1, o2)
+    assert h1.sum() == h2.sum() > 0.99 * np.sum(ranges < 10.0)
+    assert np.sum(h1 != h2) <= 1e-3 * np.sum(h1 > 0)  # an end point on a cell border
+    np.testing.assert_allclose(r2.sum(), r1.sum(), rtol=1e-6)
+    np.testing.assert_allclose(r2, r1, atol=2e-3)
+    assert r1.sum() > 1000.0
+    if grazing_m:  # the cut is on: it changed the lengths
+        plain = GridMap(0.05, 10.0)
+        plain.add_scans(poses, az, ranges)
+        assert plain.lengths.sum() - batch.lengths.sum() > 1.0
+
+
+def test_grid_map_add_scans_then_remove_gives_zeros():
+    poses, az, ranges = _office_scans(5)
+    g = GridMap(0.05, 10.0, grazing_m=0.05)
+    g.add_scans(poses, az, ranges)
+    assert g.hits.sum() > 0 and g.lengths.sum() > 0
+    g.add_scans(poses, az, ranges, sign=-1.0)
+    assert not np.any(g.hits) and not np.any(g.lengths)
+    g.add_scans(np.zeros((0, 3)), az, np.zeros((0, az.size)))  # nothing to add
+    assert not np.any(g.hits)
+
+
+def test_grid_map_add_scans_rejects_bad_input():
+    poses, az, ranges = _office_scans(3)
+    g = GridMap(0.05, 10.0)
+    bad_pose = poses.copy()
+    bad_pose[1, 2] = np.nan
+    bad_range = ranges.copy()
+    bad_range[0, 4] = -1.0
+    for args, kw, name in (
+        ((bad_pose, az, ranges), {}, "poses_xy_yaw"),
+        ((poses[:, :2], az, ranges), {}, "poses_xy_yaw"),
+        ((poses, az[:-1], ranges), {}, "ranges"),
+        ((poses, np.zeros(0), ranges[:, :0]), {}, "azimuths"),
+        ((poses, az, bad_range), {}, "ranges"),
+        ((poses, az, ranges), {"sign": 0.5}, "sign"),
+    ):
+        with pytest.raises(ValueError, match=name):
+            g.add_scans(*args, **kw)
+    assert g.lo is None  # nothing was added
+
+
 # ----------------------------------------------------------------------------------------
 # 5. loop closures on a revisit of the office's start
 

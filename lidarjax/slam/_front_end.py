@@ -535,6 +535,10 @@ def _grazing(azimuths, ranges, cfg: FrontEndConfig) -> np.ndarray:
     )
 
 
+_ADD_BLOCK = 128
+"""Cells: :meth:`GridMap.add_scans` traces on a square grid of a multiple of this side."""
+
+
 def grid_map(cfg: FrontEndConfig) -> GridMap:
     """An empty :class:`GridMap` with the resolution, range cap and grazing settings of
     ``cfg`` (no grazing cut for the endpoint model)."""
@@ -631,6 +635,92 @@ class GridMap:
         else:
             self.hits[cells] += sign * hits.astype(float)
             self.lengths[cells] += sign * lengths.astype(float)
+
+    def add_scans(self, poses_xy_yaw, azimuths, ranges, *, sign: float = 1.0) -> None:
+        """Add (``sign=1``) or remove (``sign=-1``) several scans at once: the sum of
+        :meth:`add_scan` of each, traced in one
+        batch on a grid just spanning their rays (three traces in all, instead of one to
+        three per scan on a grid of twice the range cap).
+
+        The cells are the same; the lengths are summed in the rays' float type over all
+        the scans (not per scan), so they agree with :meth:`add_scan`'s to round-off, and a
+        ray's end point exactly on a cell border may fall in the neighbouring cell.
+
+        Args:
+            poses_xy_yaw: ``[S 3]`` the scans' poses ``(x m, y m, yaw rad)``, finite.
+            azimuths: ``[B]`` beam angles (rad).
+            ranges: ``[S B]`` readings (m), finite and >= 0.
+            sign: 1 adds, -1 removes (the same scans at the same poses remove exactly
+                what they added).
+        """
+        if sign not in (1.0, -1.0):
+            raise ValueError(f"sign must be 1 or -1, got {sign!r}")
+        poses = np.asarray(poses_xy_yaw, dtype=float)
+        az = np.asarray(azimuths, dtype=float)
+        rng = np.asarray(ranges, dtype=float)
+        if poses.ndim != 2 or poses.shape[1] != 3 or not np.all(np.isfinite(poses)):
+            raise ValueError(f"poses_xy_yaw must be a finite [S, 3] array, got {poses.shape}")
+        if az.ndim != 1 or az.shape[0] == 0 or not np.all(np.isfinite(az)):
+            raise ValueError(f"azimuths must be a finite [B] array, B > 0, got {az.shape}")
+        if rng.shape != (poses.shape[0], az.shape[0]):
+            raise ValueError(
+                f"ranges must have shape [{poses.shape[0]}, {az.shape[0]}] (poses, azimuths), "
+                f"got {rng.shape}"
+            )
+        if not (np.all(np.isfinite(rng)) and np.all(rng >= 0)):
+            raise ValueError("ranges must be finite and >= 0 (give no-returns as the max reading)")
+        if poses.shape[0] == 0:
+            return
+        # the cells every ray can touch: its origin to its (capped) end, plus a margin
+        yaw = poses[:, 2:3] + az
+        reach = np.minimum(rng, self.cap)
+        xs = np.concatenate([poses[:, 0], (poses[:, 0:1] + reach * np.cos(yaw)).ravel()])
+        ys = np.concatenate([poses[:, 1], (poses[:, 1:2] + reach * np.sin(yaw)).ravel()])
+        lo = np.floor(np.array([xs.min(), ys.min()]) / self.res).astype(np.int64) - 2
+        hi = np.floor(np.array([xs.max(), ys.max()]) / self.res).astype(np.int64) + 3
+        # a square of a multiple of _ADD_BLOCK cells: few distinct shapes to compile
+        side = _ADD_BLOCK * int(math.ceil(int((hi - lo).max()) / _ADD_BLOCK))
+        lo = (lo + hi) // 2 - side // 2
+        hi = lo + side
+        self._ensure(lo, hi)
+        shape = tuple(int(v) for v in hi - lo)
+        spec = GridSpec(lo * self.res, self.res, shape)
+        st = accumulate(spec, from_scan(se2(poses), az, rng, 0.0, self.cap))
+        hits = np.asarray(st.hits)
+        lengths = np.asarray(st.lengths, dtype=float)
+        if self.grazing_m > 0:
+            skip = np.stack(
+                [grazing_lengths(az, r, self.cap, self.grazing_m, self.grazing_max_m) for r in rng]
+            )
+            keep = self.grazing_m
+            cut = (rng < self.cap) & (skip > keep)
+            if np.any(cut):
+                # as add_scan: every ray's free length is [0, r - skip] and [r - keep, r]
+                # where it is cut, [0, min(r, cap)] where not
+                head = np.where(cut, rng - skip, reach)
+                start = np.where(cut, rng - keep, 0.0)
+                tail_poses = np.stack(
+                    [
+                        poses[:, 0:1] + start * np.cos(yaw),
+                        poses[:, 1:2] + start * np.sin(yaw),
+                        yaw,
+                    ],
+                    -1,
+                ).reshape(-1, 3)
+                tail = from_scan(
+                    se2(tail_poses), np.zeros(1), np.where(cut, keep, 0.0).reshape(-1, 1)
+                )
+                lengths = np.asarray(
+                    accumulate(spec, from_scan(se2(poses), az, head)).lengths, dtype=float
+                ) + np.asarray(accumulate(spec, tail).lengths, dtype=float)
+        i, j = (lo - self.lo).astype(int)
+        cells = (slice(i, i + shape[0]), slice(j, j + shape[1]))
+        if sign == 1.0:
+            self.hits[cells] += hits
+            self.lengths[cells] += lengths
+        else:
+            self.hits[cells] -= hits
+            self.lengths[cells] -= lengths
 
     def _grazing_free_lengths(self, spec, pose_xy_yaw, azimuths, ranges, plain) -> np.ndarray:
         """``[n n]`` lengths of one scan when each cut HIT ray's free length is ``[0, r -

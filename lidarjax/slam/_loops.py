@@ -456,9 +456,8 @@ def scene_log_likelihood(
     levels = []
     for k in centres:
         grid = grid_map(fcfg)
-        for q in range(k - h, k + h + 1):
-            if q != k:
-                grid.add_scan(between_np(poses[k], poses[q]), az, rng[q])
+        q = np.array([q for q in range(k - h, k + h + 1) if q != k])
+        grid.add_scans(between_np(np.broadcast_to(poses[k], (q.size, 3)), poses[q]), az, rng[q])
         mean_ll, n_used = score_scan(grid, az, rng[k], np.zeros(3), fcfg)
         if n_used >= cfg.min_used_fraction * az.shape[0]:
             levels.append(mean_ll)
@@ -728,8 +727,7 @@ def find_loops(
         lo, hi = max(0, j - cfg.submap_half), min(n, j + cfg.submap_half + 1)
         local = between_np(np.broadcast_to(poses[j], (hi - lo, 3)), poses[lo:hi])
         grid = grid_map(fcfg)
-        for k in range(hi - lo):
-            grid.add_scan(local[k], az, rng[lo + k])
+        grid.add_scans(local, az, rng[lo:hi])
         if cfg.submap_cache > 0:
             cache[j] = grid
             if len(cache) > cfg.submap_cache:

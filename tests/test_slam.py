@@ -619,6 +619,37 @@ def test_grid_map_add_scans_then_remove_gives_zeros():
     assert not np.any(g.hits)
 
 
+def test_grid_map_add_scans_of_scans_far_apart_equals_adding_each(monkeypatch):
+    # 60 m apart with a 3 m cap: the spanning grid would be 10 times add_scan's, so the
+    # scans go in halves; the sums are still the per-scan ones
+    import lidarjax.slam._front_end as fe
+
+    sides = []
+
+    def spy(spec, rays, **kw):
+        sides.append(max(spec.shape))
+        return accumulate(spec, rays, **kw)
+
+    monkeypatch.setattr(fe, "accumulate", spy)
+    scans = [_square_scan(seed=s) for s in range(4)]
+    az = scans[0][0]
+    poses = np.array([[0.3, 0.2, 0.1], [60.1, -0.4, 1.2], [0.9, 59.7, -2.0], [1.1, 0.8, 0.4]])
+    ranges = np.stack([r for _, r in scans])
+    each, batch = GridMap(0.1, 3.0), GridMap(0.1, 3.0)
+    for p, r in zip(poses, ranges):
+        each.add_scan(p, az, r)
+    batch.add_scans(poses, az, ranges)
+    assert sides and max(sides) <= 256  # traced in parts, never on one 60 m grid
+    lo = np.minimum(each.lo, batch.lo)
+    n = int(max(np.max(each.lo + each.hits.shape), np.max(batch.lo + batch.hits.shape)) - lo.min())
+    centre = (lo.min() + n / 2) * 0.1
+    h1, r1, _ = each.window([centre, centre], n + 2)
+    h2, r2, _ = batch.window([centre, centre], n + 2)
+    assert h1.sum() == h2.sum() == each.hits.sum() > 0
+    np.testing.assert_allclose(r2, r1, atol=1e-4)
+    np.testing.assert_allclose(r2.sum(), each.lengths.sum(), rtol=1e-6)
+
+
 def test_grid_map_add_scans_rejects_bad_input():
     poses, az, ranges = _office_scans(3)
     g = GridMap(0.05, 10.0)

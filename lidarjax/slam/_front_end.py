@@ -644,7 +644,9 @@ class GridMap:
 
         The cells are the same; the lengths are summed in the rays' float type over all
         the scans (not per scan), so they agree with :meth:`add_scan`'s to round-off, and a
-        ray's end point exactly on a cell border may fall in the neighbouring cell.
+        ray's end point exactly on a cell border may fall in the neighbouring cell. Scans
+        spread wider than twice :meth:`add_scan`'s grid are added in halves, so memory
+        stays bounded.
 
         Args:
             poses_xy_yaw: ``[S 3]`` the scans' poses ``(x m, y m, yaw rad)``, finite.
@@ -680,6 +682,12 @@ class GridMap:
         hi = np.floor(np.array([xs.max(), ys.max()]) / self.res).astype(np.int64) + 3
         # a square of a multiple of _ADD_BLOCK cells: few distinct shapes to compile
         side = _ADD_BLOCK * int(math.ceil(int((hi - lo).max()) / _ADD_BLOCK))
+        if side > 2 * max(self._n_local, _ADD_BLOCK) and poses.shape[0] > 1:
+            # scans far apart: in two halves, so the grid stays bounded (memory)
+            h = poses.shape[0] // 2
+            self.add_scans(poses[:h], az, rng[:h], sign=sign)
+            self.add_scans(poses[h:], az, rng[h:], sign=sign)
+            return
         lo = (lo + hi) // 2 - side // 2
         hi = lo + side
         self._ensure(lo, hi)

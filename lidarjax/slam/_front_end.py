@@ -622,7 +622,9 @@ class GridMap:
         # the kernel's own dtypes (counts, the rays' float), widened exactly by the adds
         hits, lengths = np.asarray(st.hits), np.asarray(st.lengths)
         if self.grazing_m > 0:
-            lengths = self._grazing_free_lengths(spec, pose_xy_yaw, azimuths, ranges, lengths)
+            lengths = self._grazing_free_lengths(
+                spec, pose_xy_yaw[None], azimuths, np.asarray(ranges, float)[None], lengths
+            )
         i, j = (lo - self.lo).astype(int)
         n = self._n_local
         cells = (slice(i, i + n), slice(j, j + n))
@@ -697,30 +699,7 @@ class GridMap:
         hits = np.asarray(st.hits)
         lengths = np.asarray(st.lengths, dtype=float)
         if self.grazing_m > 0:
-            skip = np.stack(
-                [grazing_lengths(az, r, self.cap, self.grazing_m, self.grazing_max_m) for r in rng]
-            )
-            keep = self.grazing_m
-            cut = (rng < self.cap) & (skip > keep)
-            if np.any(cut):
-                # as add_scan: every ray's free length is [0, r - skip] and [r - keep, r]
-                # where it is cut, [0, min(r, cap)] where not
-                head = np.where(cut, rng - skip, reach)
-                start = np.where(cut, rng - keep, 0.0)
-                tail_poses = np.stack(
-                    [
-                        poses[:, 0:1] + start * np.cos(yaw),
-                        poses[:, 1:2] + start * np.sin(yaw),
-                        yaw,
-                    ],
-                    -1,
-                ).reshape(-1, 3)
-                tail = from_scan(
-                    se2(tail_poses), np.zeros(1), np.where(cut, keep, 0.0).reshape(-1, 1)
-                )
-                lengths = np.asarray(
-                    accumulate(spec, from_scan(se2(poses), az, head)).lengths, dtype=float
-                ) + np.asarray(accumulate(spec, tail).lengths, dtype=float)
+            lengths = self._grazing_free_lengths(spec, poses, az, rng, lengths)
         i, j = (lo - self.lo).astype(int)
         cells = (slice(i, i + shape[0]), slice(j, j + shape[1]))
         if sign == 1.0:
@@ -730,14 +709,17 @@ class GridMap:
             self.hits[cells] -= hits
             self.lengths[cells] -= lengths
 
-    def _grazing_free_lengths(self, spec, pose_xy_yaw, azimuths, ranges, plain) -> np.ndarray:
-        """``[n n]`` lengths of one scan when each cut HIT ray's free length is ``[0, r -
-        skip]`` and ``[r - keep, r]`` instead of ``[0, r]`` (``skip`` from
-        :func:`grazing_lengths`, ``keep = grazing_m``); ``plain`` (the uncut lengths)
-        where no ray is cut."""
+    def _grazing_free_lengths(self, spec, poses_xy_yaw, azimuths, ranges, plain) -> np.ndarray:
+        """``[n n]`` lengths of the scans at ``[S 3]`` poses with ``[S B]`` ranges when each
+        cut HIT ray's free length is ``[0, r - skip]`` and ``[r - keep, r]`` instead of
+        ``[0, r]`` (``skip`` from :func:`grazing_lengths`, ``keep = grazing_m``);
+        ``plain`` (the uncut lengths) where no ray is cut."""
         rng = np.asarray(ranges, float)
         az = np.asarray(azimuths, float)
-        skip = grazing_lengths(az, rng, self.cap, self.grazing_m, self.grazing_max_m)
+        poses = np.asarray(poses_xy_yaw, float)
+        skip = np.stack(
+            [grazing_lengths(az, r, self.cap, self.grazing_m, self.grazing_max_m) for r in rng]
+        )
         keep = self.grazing_m
         cut = (rng < self.cap) & (skip > keep)
         if not np.any(cut):
@@ -749,11 +731,13 @@ class GridMap:
         # every ray in both batches, so that the shapes (and the compiled tracer) never
         # change: an uncut ray is traced whole in the first and has no tail in the second
         head = np.where(cut, rng - skip, np.minimum(rng, self.cap))
-        yaw = pose_xy_yaw[2] + az
-        start = np.where(cut, rng - keep, 0.0)[:, None] * np.stack([np.cos(yaw), np.sin(yaw)], 1)
-        tail_poses = np.concatenate([pose_xy_yaw[:2] + start, yaw[:, None]], 1)
-        tail = from_scan(se2(tail_poses), np.zeros(1), np.where(cut, keep, 0.0)[:, None])
-        return lengths(from_scan(se2(pose_xy_yaw), az, head)) + lengths(tail)
+        yaw = poses[:, 2:3] + az
+        start = np.where(cut, rng - keep, 0.0)[..., None] * np.stack([np.cos(yaw), np.sin(yaw)], -1)
+        tail_poses = np.concatenate([poses[:, None, :2] + start, yaw[..., None]], -1)
+        tail = from_scan(
+            se2(tail_poses.reshape(-1, 3)), np.zeros(1), np.where(cut, keep, 0.0).reshape(-1, 1)
+        )
+        return lengths(from_scan(se2(poses), az, head)) + lengths(tail)
 
     def _overlap(self, lo: np.ndarray, n: int):
         """Slices ``(global, window)`` of the overlap of the window at ``lo`` with the grid,

@@ -456,8 +456,9 @@ def scene_log_likelihood(
     levels = []
     for k in centres:
         grid = grid_map(fcfg)
-        q = np.array([q for q in range(k - h, k + h + 1) if q != k])
-        grid.add_scans(between_np(np.broadcast_to(poses[k], (q.size, 3)), poses[q]), az, rng[q])
+        others = np.array([q for q in range(k - h, k + h + 1) if q != k])
+        local = between_np(np.broadcast_to(poses[k], (others.size, 3)), poses[others])
+        grid.add_scans(local, az, rng[others])
         mean_ll, n_used = score_scan(grid, az, rng[k], np.zeros(3), fcfg)
         if n_used >= cfg.min_used_fraction * az.shape[0]:
             levels.append(mean_ll)
